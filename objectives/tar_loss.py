@@ -1,0 +1,348 @@
+"""``TARLoss``: a TorchRL ``LossModule`` that owns the reduction of per-step losses over time.
+
+The inner objective (any ``LossModule`` built with ``reduction="none"``, e.g. torchrl's
+``BCLoss``) computes unreduced per-step losses on a ``[B, L]`` TensorDict of segments.
+``TARLoss`` reduces any trailing event dimensions (action dims, chunk horizon) to ``[B, L]``,
+weights the steps of each segment with a registered weighting (``"tar"`` by default, the
+uniform mean and the paper's controls by name) and returns the segment loss of Eq. 2,
+averaged over the segments that have at least one valid step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import Tensor
+
+from torchrl.objectives import LossModule
+
+from .schedule import MixSchedule
+from .weighting import (
+    DEFAULT_EPS,
+    DEFAULT_GAMMA,
+    DEFAULT_W_MAX,
+    TARParams,
+    get_weighting,
+    perturb_mask,
+)
+
+__all__ = ["TARLoss", "segment_mean"]
+
+
+def segment_mean(losses: Tensor, weights: Tensor, valid: Tensor) -> Tensor:
+    """Eq. 2 per segment, then the mean over segments that have at least one valid step.
+
+    Args:
+        losses: ``[..., L]`` per-step losses (padded steps may hold anything, NaN included).
+        weights: ``[..., L]`` step weights (unit mean over valid steps for TAR, ones for Eq. 1).
+        valid: ``[..., L]`` bool, ``True`` on real steps, ``False`` on padding.
+
+    Returns:
+        A scalar: ``mean_i (1 / M_i) sum_t m_t w_t l_t`` over segments ``i`` with ``M_i > 0``;
+        ``0`` when no segment has a valid step.
+    """
+    zero = torch.zeros((), dtype=losses.dtype, device=losses.device)
+    per_step = torch.where(valid, weights.to(losses.dtype) * losses, zero)
+    n_valid = valid.sum(-1)
+    per_segment = per_step.sum(-1) / n_valid.clamp_min(1).to(losses.dtype)
+    return per_segment.sum() / (n_valid > 0).sum().clamp_min(1).to(losses.dtype)
+
+
+class TARLoss(LossModule):
+    """Time-Adaptive Reweighting around a per-step imitation loss (paper Sec. II).
+
+    Args:
+        inner (LossModule): computes per-step losses without reducing them, e.g.
+            ``BCLoss(actor, loss_function="mse", reduction="none")``. Its output must hold one
+            ``loss_*`` entry of shape ``[B, L, ...]`` (the input's batch shape, then any event
+            dims); other ``loss_*`` entries must be scalars and are added unweighted.
+        weighting (str): a name from :data:`tar_rl.objectives.WEIGHTINGS`: ``"tar"`` (default),
+            ``"uniform"`` (Eq. 1), or a control: ``"shuffle"``, ``"random"``, ``"invert"``,
+            ``"perturb_high"``, ``"perturb_low"``.
+
+    Keyword Args:
+        gamma, w_max, eps, cap: TAR's hyper-parameters, see :func:`tar_rl.tar_weights`.
+        schedule (MixSchedule): when TAR (and every control) is mixed in; default: fully on
+            from the first step. Before ``schedule.start`` every weighting is the uniform mean.
+        loss_key (NestedKey): the inner output holding the per-step loss; default: its only
+            ``loss_*`` entry.
+        perturb_fraction (float): for ``perturb_*``, the fraction of each segment's valid steps
+            whose expert action is corrupted at full schedule strength (scaled by alpha).
+            Not given by the paper; default ``0.25``.
+        perturb_scale (float): for ``perturb_*``, the std of the Gaussian noise added to those
+            actions, in action units. Not given by the paper; default ``0.1``.
+        seed (int): seeds the generator of the stochastic controls; its state is part of
+            ``state_dict()`` so that a resumed run draws the same numbers.
+        return_weights (bool): also return the ``[B, L]`` weights under ``"weights"``.
+        auto_step (bool): advance the schedule by one on every forward pass made in training
+            mode with gradients enabled (default). Set ``False`` with gradient accumulation and
+            call :meth:`advance` once per optimiser step instead.
+
+    Input: a TensorDict of batch shape ``[B, L]`` (segments x steps), holding what the inner
+    loss reads and the validity mask at ``tensor_keys.valid`` (``True`` on real steps,
+    ``False`` on padding; default ``("collector", "mask")``, which
+    ``SliceSampler(pad_output=True)`` writes; if absent, every step is valid).
+
+    Output keys: ``loss_tar`` (the only differentiable entry) and the detached diagnostics
+    ``tar_mix`` (alpha), ``weight_max``, ``weight_ess`` (mean over segments of the effective
+    sample size ``(sum w)^2 / (M sum w^2)``, 1 for uniform weights), ``uniform_loss`` (Eq. 1
+    on the same losses), ``schedule_step``; ``perturbed_fraction`` for the perturbation
+    controls; ``aux_<key>`` for extra scalar inner losses; ``weights`` if asked.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.objectives import BCLoss
+        >>> actor = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["action"])
+        >>> loss = TARLoss(BCLoss(actor, loss_function="mse", reduction="none"))
+        >>> data = TensorDict(
+        ...     {"observation": torch.randn(4, 8, 3), "action": torch.randn(4, 8, 2),
+        ...      ("collector", "mask"): torch.ones(4, 8, dtype=torch.bool)}, [4, 8])
+        >>> out = loss(data)
+        >>> out["loss_tar"].shape, sorted(k for k in out.keys() if k.startswith("loss"))
+        (torch.Size([]), ['loss_tar'])
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable input keys.
+
+        Attributes:
+            valid (NestedKey): bool ``[B, L]`` (or ``[B, L, 1]``) mask, ``True`` on real steps.
+                Defaults to ``("collector", "mask")``.
+            action (NestedKey): the expert action that the ``perturb_*`` controls corrupt.
+                Defaults to the inner loss's action key, else ``"action"``.
+            event_valid (NestedKey, optional): bool ``[B, L, ...]`` mask over the event dims of
+                the per-step loss, ``True`` on real elements (e.g. the valid part of an action
+                chunk near the end of a trajectory). The per-step loss is the mean over the
+                valid elements. Defaults to ``None``: a plain mean over the event dims.
+        """
+
+        valid: NestedKey = ("collector", "mask")
+        action: NestedKey = "action"
+        event_valid: NestedKey | None = None
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys = ["loss_tar", "tar_mix", "weight_max", "weight_ess", "uniform_loss", "schedule_step"]
+
+    inner: LossModule
+
+    def __init__(
+        self,
+        inner: LossModule,
+        weighting: str = "tar",
+        *,
+        gamma: float = DEFAULT_GAMMA,
+        w_max: float = DEFAULT_W_MAX,
+        eps: float = DEFAULT_EPS,
+        cap: str = "paper",
+        schedule: MixSchedule | None = None,
+        loss_key: NestedKey | None = None,
+        perturb_fraction: float = 0.25,
+        perturb_scale: float = 0.1,
+        seed: int = 0,
+        return_weights: bool = False,
+        auto_step: bool = True,
+    ) -> None:
+        if not isinstance(inner, LossModule):
+            raise TypeError(f"inner must be a torchrl LossModule, got {type(inner).__name__}.")
+        reduction = getattr(inner, "reduction", "none")
+        if reduction != "none":
+            raise ValueError(
+                f"TARLoss needs unreduced per-step losses, but the inner {type(inner).__name__} has "
+                f"reduction={reduction!r}: build it with reduction='none'."
+            )
+        if not 0 <= perturb_fraction <= 1:
+            raise ValueError(f"perturb_fraction must lie in [0, 1], got {perturb_fraction!r}.")
+        if not (math.isfinite(perturb_scale) and perturb_scale >= 0):
+            raise ValueError(f"perturb_scale must be a finite number >= 0, got {perturb_scale!r}.")
+        schedule = MixSchedule() if schedule is None else schedule
+        if not isinstance(schedule, MixSchedule):
+            raise TypeError(f"schedule must be a MixSchedule, got {type(schedule).__name__}.")
+        super().__init__()
+        self.inner = inner
+        self.weighting = get_weighting(weighting)
+        self.tar_params = TARParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
+        self.schedule = schedule
+        self.loss_key = loss_key
+        self.perturb_fraction = float(perturb_fraction)
+        self.perturb_scale = float(perturb_scale)
+        self.return_weights = return_weights
+        self.auto_step = auto_step
+        self.register_buffer("schedule_step", torch.zeros((), dtype=torch.long))
+        self._generator = torch.Generator().manual_seed(seed)
+        inner_keys = getattr(inner, "tensor_keys", None)
+        if inner_keys is not None and hasattr(inner_keys, "action"):
+            self.set_keys(action=inner_keys.action)
+        if return_weights:
+            self.out_keys = [*type(self).out_keys, "weights"]
+
+    # -- TorchRL plumbing -------------------------------------------------------------------
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = [*self.inner.in_keys, self.tensor_keys.valid]
+        if self.tensor_keys.event_valid is not None:
+            keys.append(self.tensor_keys.event_valid)
+        return list(dict.fromkeys(keys))
+
+    def get_extra_state(self) -> dict:
+        return {"generator": self._generator.get_state()}
+
+    def set_extra_state(self, state: dict) -> None:
+        self._generator.set_state(state["generator"])
+
+    def advance(self, steps: int = 1) -> None:
+        """Move the schedule on by ``steps`` optimiser steps (for ``auto_step=False``)."""
+        self.schedule_step.add_(steps)
+
+    # -- The objective ----------------------------------------------------------------------
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Weighted segment loss of Eq. 2 on a ``[B, L]`` TensorDict; does not modify it."""
+        if tensordict.batch_dims < 2:
+            raise ValueError(
+                f"TARLoss expects a TensorDict of segments with batch shape [B, L], got "
+                f"{list(tensordict.batch_size)}: reshape the sampler's flat output, e.g. "
+                "`batch.reshape(-1, slice_len)`."
+            )
+        valid = self._read_valid(tensordict)
+        mix = self.schedule(self.schedule_step)
+        spec = self.weighting
+        generator = self._generator if spec.stochastic else None
+        diagnostics: dict[str, Tensor] = {}
+
+        if spec.perturb is not None:
+            with torch.no_grad():
+                clean = self._step_losses(self.inner(tensordict), tensordict)
+            chosen = perturb_mask(
+                clean, valid, fraction=self.perturb_fraction * mix, which=spec.perturb, generator=generator
+            )
+            tensordict = self._perturb_actions(tensordict, chosen, generator)
+            diagnostics["perturbed_fraction"] = chosen.sum() / valid.sum().clamp_min(1)
+
+        out = self.inner(tensordict)
+        losses = self._step_losses(out, tensordict)
+        weights = spec.weights(losses, valid, self.tar_params, mix, generator)
+        loss = segment_mean(losses, weights, valid)
+        for key, value in self._extra_losses(out).items():
+            loss = loss + value
+            diagnostics[f"aux_{key}"] = value.detach()
+
+        with torch.no_grad():
+            m = valid.to(weights.dtype)
+            n_valid = m.sum(-1)
+            square_sum = (weights.square() * m).sum(-1)
+            ess = (weights * m).sum(-1).square() / (n_valid * square_sum).clamp_min(torch.finfo(weights.dtype).tiny)
+            nonempty = n_valid > 0
+            result = {
+                "loss_tar": loss,
+                "tar_mix": torch.as_tensor(mix, dtype=torch.float32),
+                "weight_max": weights.detach().max(),
+                "weight_ess": (ess * nonempty).sum() / nonempty.sum().clamp_min(1),
+                "uniform_loss": segment_mean(losses.detach(), m, valid),
+                "schedule_step": self.schedule_step.clone(),
+                **diagnostics,
+            }
+            if self.return_weights:
+                result["weights"] = weights.detach()
+
+        if self.auto_step and self.training and torch.is_grad_enabled():
+            self.schedule_step.add_(1)
+        return TensorDict(result, batch_size=[])
+
+    # -- Helpers ----------------------------------------------------------------------------
+
+    def _read_valid(self, tensordict: TensorDictBase) -> Tensor:
+        batch = tensordict.batch_size
+        key = self.tensor_keys.valid
+        valid = tensordict.get(key, None)
+        if valid is None:
+            return torch.ones(batch, dtype=torch.bool, device=tensordict.device)
+        if valid.dtype != torch.bool:
+            raise TypeError(
+                f"the validity mask {key!r} must be torch.bool (True on real steps), got {valid.dtype}."
+            )
+        while valid.ndim > len(batch) and valid.shape[-1] == 1:
+            valid = valid.squeeze(-1)
+        if valid.shape != batch:
+            raise ValueError(
+                f"the validity mask {key!r} has shape {list(valid.shape)}, expected the batch shape {list(batch)}."
+            )
+        return valid
+
+    def _loss_entry(self, out: TensorDictBase) -> NestedKey:
+        if self.loss_key is not None:
+            if self.loss_key not in out.keys(True):
+                raise KeyError(f"the inner loss returned no {self.loss_key!r}; it returned {list(out.keys())}.")
+            return self.loss_key
+        names = [k for k in out.keys() if isinstance(k, str) and k.startswith("loss")]
+        if len(names) != 1:
+            raise ValueError(
+                f"the inner loss returned {len(names)} loss entries {names}: say which one holds the "
+                "per-step loss with TARLoss(..., loss_key=...)."
+            )
+        return names[0]
+
+    def _extra_losses(self, out: TensorDictBase) -> dict[str, Tensor]:
+        main = self._loss_entry(out)
+        extra = {}
+        for key in out.keys():
+            if isinstance(key, str) and key.startswith("loss") and key != main:
+                value = out.get(key)
+                if value.ndim != 0:
+                    raise ValueError(
+                        f"the inner loss's extra entry {key!r} has shape {list(value.shape)}: extra "
+                        "losses are added unweighted and must be scalars."
+                    )
+                extra[key] = value
+        return extra
+
+    def _step_losses(self, out: TensorDictBase, tensordict: TensorDictBase) -> Tensor:
+        """The inner per-step loss as ``[B, L]``: trailing event dims averaged away."""
+        key = self._loss_entry(out)
+        loss = out.get(key)
+        batch = tensordict.batch_size
+        if loss.shape[: len(batch)] != batch:
+            raise ValueError(
+                f"the inner loss's {key!r} has shape {list(loss.shape)}, but TARLoss needs per-step "
+                f"losses shaped like the batch {list(batch)} (then any event dims): build the inner "
+                "loss with reduction='none' and do not pass it a pad_mask (which flattens the output)."
+            )
+        if loss.ndim == len(batch):
+            return loss
+        event_dims = tuple(range(len(batch), loss.ndim))
+        event_key = self.tensor_keys.event_valid
+        if event_key is None:
+            return loss.mean(event_dims)
+        event_valid = tensordict.get(event_key)
+        if event_valid.dtype != torch.bool or event_valid.shape != loss.shape[: event_valid.ndim]:
+            raise ValueError(
+                f"the event mask {event_key!r} must be torch.bool with a leading part of the loss's "
+                f"shape {list(loss.shape)}, got {event_valid.dtype} {list(event_valid.shape)}."
+            )
+        event_valid = event_valid.reshape(event_valid.shape + (1,) * (loss.ndim - event_valid.ndim))
+        event_valid = event_valid.expand_as(loss)
+        total = torch.where(event_valid, loss, torch.zeros((), dtype=loss.dtype, device=loss.device)).sum(event_dims)
+        return total / event_valid.sum(event_dims).clamp_min(1).to(loss.dtype)
+
+    def _perturb_actions(
+        self, tensordict: TensorDictBase, chosen: Tensor, generator: torch.Generator | None
+    ) -> TensorDictBase:
+        """A shallow copy of the input whose expert action has Gaussian noise on the chosen steps."""
+        key = self.tensor_keys.action
+        action = tensordict.get(key)
+        noise = torch.randn(action.shape, generator=generator, dtype=torch.float32).to(action)
+        chosen = chosen.reshape(chosen.shape + (1,) * (action.ndim - chosen.ndim))
+        perturbed = tensordict.copy()
+        perturbed.set(key, action + self.perturb_scale * noise * chosen)
+        return perturbed
