@@ -16,7 +16,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-__all__ = ["MixSchedule", "SCHEDULE_SHAPES", "mix_at"]
+__all__ = ["SCHEDULE_SHAPES", "MixSchedule", "mix_at"]
 
 SCHEDULE_SHAPES: tuple[str, ...] = ("linear", "cosine")
 

@@ -17,7 +17,6 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
-
 from torchrl.objectives import LossModule
 
 from .schedule import MixSchedule
@@ -180,8 +179,8 @@ class TARLoss(LossModule):
         inner_keys = getattr(inner, "tensor_keys", None)
         if inner_keys is not None and hasattr(inner_keys, "action"):
             self.set_keys(action=inner_keys.action)
-        if return_weights:
-            self.out_keys = [*type(self).out_keys, "weights"]
+        extra_out = (["perturbed_fraction"] if self.weighting.perturb else []) + (["weights"] if return_weights else [])
+        self.out_keys = [*self.out_keys, *extra_out]
 
     # -- TorchRL plumbing -------------------------------------------------------------------
 
@@ -269,9 +268,7 @@ class TARLoss(LossModule):
         if valid is None:
             return torch.ones(batch, dtype=torch.bool, device=tensordict.device)
         if valid.dtype != torch.bool:
-            raise TypeError(
-                f"the validity mask {key!r} must be torch.bool (True on real steps), got {valid.dtype}."
-            )
+            raise TypeError(f"the validity mask {key!r} must be torch.bool (True on real steps), got {valid.dtype}.")
         while valid.ndim > len(batch) and valid.shape[-1] == 1:
             valid = valid.squeeze(-1)
         if valid.shape != batch:

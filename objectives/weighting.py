@@ -33,11 +33,11 @@ __all__ = [
     "DEFAULT_EPS",
     "DEFAULT_GAMMA",
     "DEFAULT_W_MAX",
-    "TARParams",
     "WEIGHTINGS",
+    "TARParams",
     "Weighting",
-    "get_weighting",
     "check_step_losses",
+    "get_weighting",
     "invert_weights",
     "perturb_mask",
     "random_weights",
@@ -104,9 +104,7 @@ def check_step_losses(losses: Tensor, valid: Tensor) -> None:
     in-graph assertion with the same message, so compiled code needs no graph break.
     """
     if not isinstance(losses, Tensor) or not isinstance(valid, Tensor):
-        raise TypeError(
-            f"losses and valid must be tensors, got {type(losses).__name__} and {type(valid).__name__}."
-        )
+        raise TypeError(f"losses and valid must be tensors, got {type(losses).__name__} and {type(valid).__name__}.")
     if not losses.is_floating_point():
         raise TypeError(f"losses must be a floating-point tensor, got dtype {losses.dtype}.")
     if valid.dtype != torch.bool:
