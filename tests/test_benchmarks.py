@@ -1,0 +1,53 @@
+"""Smoke test of the benchmark scripts: they run and write the tidy CSV they promise.
+
+No timing is asserted here (speed is measured as ratios in benchmarks/, never in tests).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_objective.py"
+
+
+def _load_bench():
+    spec = importlib.util.spec_from_file_location("bench_objective", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_bench_objective_quick_writes_csv(tmp_path):
+    bench = _load_bench()
+    out = tmp_path / "o.csv"
+    bench.main(["--quick", "--out", str(out)])
+
+    assert out.exists()
+    df = pd.read_csv(out)
+    assert list(df.columns) == bench.COLUMNS
+    assert set(df.section) == {"train_step", "train_step_paired", "weighting"}
+    step = df[df.section == "train_step"]
+    assert set(step.variant) == set(bench.STEP_VARIANTS)
+    assert set(step.baseline) == set(bench.STEP_BASELINES)
+    paired = df[df.section == "train_step_paired"]
+    assert {"tar", "tar_exact"} <= set(paired[paired.baseline == "uniform"].variant)
+    weighting = df[df.section == "weighting"]
+    assert set(weighting.variant) == set(bench.WEIGHT_VARIANTS)
+
+    # Every measured row has a positive finite median; compiled rows may only be missing
+    # (NaN, unit "unavailable") where torch.compile failed, and then all of a variant's rows are.
+    measured = df[df.unit != "unavailable"]
+    assert all(math.isfinite(m) and m > 0 for m in measured["median"])
+    assert all(math.isfinite(r) and r > 0 for r in measured["ratio_to_baseline"])
+    assert (measured.n > 0).all()
+    unavailable = df[df.unit == "unavailable"]
+    assert set(unavailable.variant) <= set(bench.COMPILED)
+    assert unavailable["median"].isna().all()
+    for name in ("masked_mean", "tar_paper", "tar_exact"):
+        assert name in set(measured[measured.section == "weighting"].variant)
