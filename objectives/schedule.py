@@ -21,6 +21,14 @@ __all__ = ["SCHEDULE_SHAPES", "MixSchedule", "mix_at"]
 SCHEDULE_SHAPES: tuple[str, ...] = ("linear", "cosine")
 
 
+def _check(start: int, ramp: int, shape: str) -> None:
+    for name, value in (("start", start), ("ramp", ramp)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"schedule {name} must be an int >= 0 (a step count), got {value!r}.")
+    if shape not in SCHEDULE_SHAPES:
+        raise ValueError(f"schedule shape must be one of {SCHEDULE_SHAPES}, got {shape!r}.")
+
+
 def mix_at(step: int | Tensor, *, start: int, ramp: int, shape: str = "linear") -> float | Tensor:
     """alpha at optimisation step ``step`` (0-based): 0 before ``start``, 1 from ``start + ramp``.
 
@@ -29,6 +37,7 @@ def mix_at(step: int | Tensor, *, start: int, ramp: int, shape: str = "linear") 
     int (returns a float) and on an integer tensor (returns a float32 tensor, without a host
     sync, so it can live inside a compiled graph).
     """
+    _check(start, ramp, shape)
     if isinstance(step, Tensor):
         if ramp == 0:
             return (step >= start).to(torch.float32)
@@ -62,12 +71,7 @@ class MixSchedule:
     shape: Literal["linear", "cosine"] = "linear"
 
     def __post_init__(self) -> None:
-        for name in ("start", "ramp"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"MixSchedule.{name} must be an int >= 0 (a step count), got {value!r}.")
-        if self.shape not in SCHEDULE_SHAPES:
-            raise ValueError(f"MixSchedule.shape must be one of {SCHEDULE_SHAPES}, got {self.shape!r}.")
+        _check(self.start, self.ramp, self.shape)
 
     def __call__(self, step: int | Tensor) -> float | Tensor:
         return mix_at(step, start=self.start, ramp=self.ramp, shape=self.shape)

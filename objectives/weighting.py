@@ -345,8 +345,8 @@ def perturb_mask(
     Within a segment TAR's weights are an increasing function of the step loss (the z-score
     and the softmax are monotone; the cap only merges the top into ties), so "the steps TAR
     would up-weight" are the steps with the largest losses. Selects, per segment,
-    ``round(fraction * M)`` valid steps: the highest-loss ones for ``which="high"``, the
-    lowest-loss ones for ``which="low"``; ties are broken at random.
+    ``floor(fraction * M + 1/2)`` valid steps (halves round up): the highest-loss ones for
+    ``which="high"``, the lowest-loss ones for ``which="low"``; ties are broken at random.
 
     Returns:
         ``[..., L]`` bool, ``True`` on the selected steps (never on padding).
@@ -356,7 +356,8 @@ def perturb_mask(
         raise ValueError(f"which must be 'high' or 'low', got {which!r}.")
     if isinstance(fraction, (int, float)) and not 0 <= fraction <= 1:
         raise ValueError(f"fraction must lie in [0, 1], got {fraction!r}.")
-    x = losses.detach().float()
+    x = losses.detach()
+    x = x.float() if x.dtype in _HALF else x  # rank in the losses' own precision (float64 stays)
     x = -x if which == "high" else x
     x = x.masked_fill(~valid, math.inf)
     # Random tie-breaking: visit the steps in a random order, then sort stably by loss.
