@@ -7,6 +7,7 @@ import importlib
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -53,3 +54,15 @@ def test_demo_runs_end_to_end(capsys):
     assert set(report["weightings"]) == {"uniform", "tar"}
     for row in report["weightings"].values():
         assert all(math.isfinite(v) and v >= 0 for v in row.values())
+
+
+def test_readme_training_example_runs(tmp_path, monkeypatch):
+    """The README's training loop, run for a few steps instead of 1,000."""
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    block = readme.split("```python\n")[1].split("```")[0]
+    assert "for step in range(1_000):" in block
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(block.replace("range(1_000)", "range(5)"), "README.md", "exec"), scope)
+    assert int(scope["loss"].schedule_step) == 5
+    assert math.isfinite(scope["out"]["loss_tar"].item())
