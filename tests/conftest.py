@@ -1,4 +1,4 @@
-"""Shared test settings: quiet torchrl's INFO logging, skip GPU tests where there is no GPU."""
+"""Shared test settings: quiet torchrl's INFO logging, one intra-op thread, GPU tests only with a GPU."""
 
 from __future__ import annotations
 
@@ -17,3 +17,17 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    """Run each test module on one intra-op thread, restored afterwards.
+
+    On a 2-core runner torch's softmax wakes its OpenMP pool for a tiny tensor and pays
+    ~10 ms per call when called from Python with pauses in between (as hypothesis does);
+    single-threaded it takes microseconds. The results do not depend on the thread count.
+    """
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 
-import pytest
 import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
@@ -16,20 +15,6 @@ from hypothesis import strategies as st
 from tar_rl import tar_weights
 
 SETTINGS = settings(max_examples=60, deadline=None)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Run these tiny tensors on one intra-op thread, restored afterwards.
-
-    On a 2-core runner torch's softmax wakes its OpenMP pool for a [6, 24] tensor and pays
-    ~10 ms per call when called from Python with pauses in between (as hypothesis does);
-    single-threaded it takes microseconds. The results do not depend on the thread count.
-    """
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 # Floats in a sane range, mixed with a few repeated values so ties and equal segments occur.

@@ -36,20 +36,6 @@ SQRT2 = math.sqrt(2.0)
 E3 = math.exp(3.0 / SQRT2)  # 8.342144716...
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Run these tiny tensors on one intra-op thread, restored afterwards.
-
-    On a 2-core runner torch's softmax wakes its OpenMP pool for a [6, 24] tensor and pays
-    ~10 ms per call when called from Python with pauses in between (as hypothesis does);
-    single-threaded it takes microseconds. The results do not depend on the thread count.
-    """
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def t64(x) -> torch.Tensor:
     return torch.tensor(x, dtype=torch.float64)
 
