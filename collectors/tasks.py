@@ -167,10 +167,12 @@ def resolve_tasks(spec: str | Iterable[str]) -> tuple[str, ...]:
 
 def task_index(name: str) -> int:
     """The task's fixed id: its position in ``TASKS`` (alphabetical order of the v3 names)."""
-    name = _normalise(name)
-    if name not in _INDEX:
-        resolve_tasks([name])  # raises with the list of valid names
-    return _INDEX[name]
+    if _normalise(name) not in _INDEX:
+        raise ValueError(
+            f"{name!r} is not a MetaWorld task name. Tasks (the -v3 suffix is optional): "
+            f"{', '.join(t[:-3] for t in TASKS)}."
+        )
+    return _INDEX[_normalise(name)]
 
 
 def group_of(name: str) -> str:
@@ -207,6 +209,8 @@ def variation(task: str, base: int, episode: int):
 
     ``MT1`` objects are cached per (task, seed): building one takes about a second.
     """
+    if episode < 0:
+        raise ValueError(f"episode numbers start at 0, got {episode}.")
     seed = base + episode // VARIATIONS_PER_SEED
     return _benchmark(task, seed).train_tasks[episode % VARIATIONS_PER_SEED]
 

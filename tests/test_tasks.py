@@ -173,15 +173,13 @@ def test_task_index_unknown():
         task_index("nope")
 
 
-@pytest.mark.xfail(
-    raises=KeyError,
-    strict=True,
-    reason="BUG in collectors/tasks.py: task_index/group_of on a GROUP name pass resolve_tasks' check "
-    "and then raise KeyError from _INDEX instead of the documented ValueError",
-)
 def test_task_index_group_name_is_valueerror():
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="'easy' is not a MetaWorld task name"):
         task_index("easy")
+    with pytest.raises(ValueError, match="not a MetaWorld task name"):
+        group_of("mt10")
+    with pytest.raises(ValueError, match="start at 0"):
+        variation("reach-v3", 1000, -1)
 
 
 # ---------------------------------------------------------------- seeds
