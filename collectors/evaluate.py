@@ -1,0 +1,335 @@
+"""Evaluation collector: roll a TensorDict policy out on MetaWorld v3 tasks, one table row per rollout.
+
+Protocol (TAR paper, Sec. III-A): rollout ``k`` of a task runs on variation
+``tasks.variation(task, seed, k)`` and stops at its first success or at the horizon ``H``;
+``steps`` (s) counts the executed environment steps, ``rho = s / H``. Success rate, Fast20 and NEPS
+are computed from these rows by ``tar_rl.metrics``.
+
+Execution. The (task, rollout) pairs, in ``TASKS`` order, are cut into ``workers`` contiguous
+shards, one independent process each ('spawn' context, one torch thread). A worker runs its
+shard in batches of ``envs_per_worker`` rollouts on one batched TorchRL env
+(``envs.make_batched_env``: a ``GymWrapper`` around a vector of MetaWorld envs): the policy is
+called once per step on the whole batch (under ``torch.no_grad``, in eval mode), and only the
+rollouts still running are stepped. Bare MetaWorld envs are built once per task in a worker and
+reused across batches.
+
+The policy is sent to the workers by pickling: it must be picklable (an ``nn.Module``-based
+``TensorDictModule`` is; a lambda inside it is not). ``workers=1`` runs in this process.
+
+A rollout whose environment raises or becomes numerically unstable is recorded with
+``success=False``, ``steps=H`` (a failure consumes the budget, as for any failed rollout) and the
+reason in ``failure``; the other rollouts go on. A policy returning a wrong action shape or
+non-finite actions is a bug in the policy: it raises, naming the task and step.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import tempfile
+import warnings
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+import pandas as pd
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from tar_rl.collectors import tasks
+from tar_rl.collectors.envs import make_batched_env
+
+__all__ = ["COLUMNS", "MAX_HORIZON", "ExpertPolicy", "evaluate", "write_rollouts"]
+
+MAX_HORIZON = 500  # MetaWorld's own episode length: its envs raise past step 500
+ACTION_DIM = 4
+DEFAULT_ENVS_PER_WORKER = 10
+COLUMNS = (
+    "task",
+    "task_id",
+    "group",
+    "variation_seed",
+    "variation_index",
+    "success",
+    "steps",
+    "rho",
+    "return",
+    "failure",
+)
+
+
+class ExpertPolicy(TensorDictModuleBase):
+    """MetaWorld's scripted experts as a TensorDict policy: ``observation``, ``task_id`` -> ``action``.
+
+    Each row of the batch gets the expert of its own task (looked up from ``task_id``), applied to
+    its observation; actions are clipped to the action box [-1, 1]. Picklable.
+    """
+
+    in_keys = ["observation", "task_id"]
+    out_keys = ["action"]
+
+    def __init__(self):
+        super().__init__()
+        self._experts: dict[int, object] = {}
+
+    def _expert(self, task_id: int):
+        if task_id not in self._experts:
+            if not 0 <= task_id < len(tasks.TASKS):
+                raise ValueError(f"ExpertPolicy: task_id {task_id} is not a MetaWorld task index (0..49)")
+            self._experts[task_id] = tasks.expert(tasks.TASKS[task_id])
+        return self._experts[task_id]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get("observation")
+        ids = tensordict.get("task_id")
+        flat_obs = obs.reshape(-1, obs.shape[-1]).double().numpy()
+        flat_ids = ids.reshape(-1).tolist()
+        with warnings.catch_warnings():  # the experts warn on every action outside [-1, 1]; they are clipped here
+            warnings.filterwarnings("ignore", "Constant\\(s\\) may be too high", UserWarning)
+            actions = np.stack([self._expert(i).get_action(o) for i, o in zip(flat_ids, flat_obs)])
+        action = torch.from_numpy(np.clip(actions, -1.0, 1.0).astype(np.float32))
+        tensordict.set("action", action.reshape(*obs.shape[:-1], ACTION_DIM))
+        return tensordict
+
+
+def _check_args(policy, rollouts_per_task, horizon, workers, envs_per_worker) -> None:
+    if not isinstance(policy, TensorDictModuleBase):
+        raise TypeError(
+            f"policy must be a TensorDictModule (reading 'observation', writing 'action'), got {type(policy).__name__}"
+        )
+    for name, value, low, high in (
+        ("rollouts_per_task", rollouts_per_task, 1, None),
+        ("horizon", horizon, 1, MAX_HORIZON),
+        ("workers", workers, 1, None),
+        ("envs_per_worker", envs_per_worker, 1, None),
+    ):
+        if value is None and name in ("workers", "envs_per_worker"):
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise TypeError(f"{name} must be an int, got {value!r}")
+        if value < low or (high is not None and value > high):
+            bounds = f"between {low} and {high}" if high is not None else f">= {low}"
+            raise ValueError(f"{name} must be {bounds}, got {value}")
+
+
+def _cpu_count() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def evaluate(
+    policy: TensorDictModuleBase,
+    tasks_spec: str | Iterable[str],
+    rollouts_per_task: int = 50,
+    seed: int = 1000,
+    horizon: int = MAX_HORIZON,
+    workers: int | None = None,
+    envs_per_worker: int | None = None,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Evaluate ``policy`` on ``tasks_spec`` (see ``tasks.resolve_tasks``); one row per rollout (``COLUMNS``).
+
+    Args:
+        policy: a picklable TensorDictModule reading ``observation`` (float32 [..., 39]) and optionally
+            ``task_id`` (int64), writing ``action`` ([..., 4], finite; the env clips it to [-1, 1]).
+        tasks_spec: task and group names.
+        rollouts_per_task: rollouts per task; rollout ``k`` uses ``tasks.variation(task, seed, k)``.
+        seed: base seed of the variations (the paper uses 1000).
+        horizon: step budget H (1..500).
+        workers: processes (default: every available core, at most one per batch of rollouts);
+            1 runs in this process.
+        envs_per_worker: rollouts batched together in a worker (default 10).
+        progress: show a tqdm bar over rollouts.
+
+    Rows are ordered by task (``TASKS`` order) then rollout, whatever the number of workers.
+    """
+    _check_args(policy, rollouts_per_task, horizon, workers, envs_per_worker)
+    names = tasks.resolve_tasks(tasks_spec)
+    jobs = [(task, k) for task in names for k in range(rollouts_per_task)]
+    batch = envs_per_worker or DEFAULT_ENVS_PER_WORKER
+    if workers is None:
+        workers = max(1, min(_cpu_count(), math.ceil(len(jobs) / batch)))
+    workers = min(workers, len(jobs))
+    bounds = np.linspace(0, len(jobs), workers + 1).round().astype(int)
+    shards = [jobs[a:b] for a, b in itertools.pairwise(bounds) if b > a]
+
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=len(jobs), desc="evaluate", unit="rollout", disable=not progress)
+    rows: list[dict] = []
+    try:
+        if len(shards) == 1:
+            rows = _run_shard(policy, shards[0], seed, horizon, batch, progress=bar.update)
+        else:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            with ctx.Manager() as manager, ProcessPoolExecutor(len(shards), mp_context=ctx) as pool:
+                queue = manager.Queue()
+                futures = [pool.submit(_worker, policy, shard, seed, horizon, batch, queue) for shard in shards]
+                pending = set(futures)
+                while pending:
+                    pending = {f for f in pending if not f.done()}
+                    while not queue.empty():
+                        bar.update(queue.get())
+                    if pending:
+                        _wait_any(pending)
+                for f in futures:
+                    rows.extend(f.result())  # re-raises a worker's error
+    finally:
+        bar.close()
+    return pd.DataFrame(rows, columns=list(COLUMNS))
+
+
+def _wait_any(futures) -> None:
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    wait(futures, timeout=0.2, return_when=FIRST_COMPLETED)
+
+
+def _worker(policy, shard, seed, horizon, batch, queue) -> list[dict]:
+    torch.set_num_threads(1)
+    return _run_shard(policy, shard, seed, horizon, batch, progress=queue.put)
+
+
+class _EnvPool:
+    """Bare MetaWorld envs of a worker, built once per task and reused across batches."""
+
+    def __init__(self):
+        self._envs: dict[str, list] = {}
+
+    def take(self, names: Sequence[str]) -> list:
+        needed: dict[str, int] = {}
+        for name in names:
+            needed[name] = needed.get(name, 0) + 1
+        for name in list(self._envs):  # shards are in task order: a task left behind is not needed again
+            if name not in needed:
+                for env in self._envs.pop(name):
+                    env.close()
+        used: dict[str, int] = {}
+        out = []
+        for name in names:
+            envs = self._envs.setdefault(name, [])
+            i = used.get(name, 0)
+            if i == len(envs):
+                envs.append(tasks.make_env(name))
+            out.append(envs[i])
+            used[name] = i + 1
+        return out
+
+    def close(self) -> None:
+        for envs in self._envs.values():
+            for env in envs:
+                env.close()
+        self._envs.clear()
+
+
+def _run_shard(policy, shard, seed, horizon, batch, progress) -> list[dict]:
+    policy.eval()
+    pool = _EnvPool()
+    rows = []
+    try:
+        with torch.no_grad():
+            for start in range(0, len(shard), batch):
+                jobs = shard[start : start + batch]
+                rows.extend(_run_batch(policy, jobs, seed, horizon, pool))
+                progress(len(jobs))
+    finally:
+        pool.close()
+    return rows
+
+
+def _run_batch(policy, jobs, seed, horizon, pool: _EnvPool) -> list[dict]:
+    """Run the rollouts ``jobs`` ((task, k) pairs) side by side until each succeeds, fails or reaches ``horizon``."""
+    names = [task for task, _ in jobs]
+    bare = pool.take(names)
+    for env, (task, k) in zip(bare, jobs):
+        env.set_task(tasks.variation(task, seed, k))
+    env, vec = make_batched_env(bare, names)
+    n = len(jobs)
+    steps = np.full(n, horizon, dtype=np.int64)
+    returns = np.zeros(n, dtype=np.float64)
+    success = np.zeros(n, dtype=bool)
+    running = np.ones(n, dtype=bool)
+    failure = [""] * n
+    td = env.reset()
+    for t in range(1, horizon + 1):
+        td = policy(td)
+        action = td.get("action", None)
+        _check_action(action, names, running, t, n)
+        vec.active = running.copy()
+        nxt = env.step(td).get("next")
+        reward = nxt.get("reward").reshape(n).numpy()
+        hit = nxt.get("success").reshape(n).numpy()
+        done = nxt.get("done").reshape(n).numpy()
+        returns[running] += reward[running]
+        for i in np.flatnonzero(running):
+            if vec.failures[i]:
+                failure[i] = vec.failures[i]
+                running[i] = False
+            elif hit[i]:
+                success[i] = True
+                steps[i] = t
+                running[i] = False
+            elif done[i]:  # MetaWorld's own truncation (only at step 500 = the largest horizon)
+                running[i] = False
+        if not running.any():
+            break
+        td = nxt
+    rows = []
+    for i, (task, k) in enumerate(jobs):
+        rows.append(
+            {
+                "task": task,
+                "task_id": tasks.task_index(task),
+                "group": tasks.group_of(task),
+                "variation_seed": seed + k // tasks.VARIATIONS_PER_SEED,
+                "variation_index": k,
+                "success": bool(success[i]),
+                "steps": int(steps[i]),
+                "rho": float(steps[i]) / horizon,
+                "return": float(returns[i]),
+                "failure": failure[i],
+            }
+        )
+    return rows
+
+
+def _check_action(action, names, running, t, n) -> None:
+    if not isinstance(action, torch.Tensor):
+        raise RuntimeError(
+            f"the policy wrote no 'action' tensor at step {t} of tasks {sorted(set(names))} "
+            f"(got {type(action).__name__})"
+        )
+    if tuple(action.shape) != (n, ACTION_DIM):
+        raise ValueError(
+            f"the policy returned actions of shape {tuple(action.shape)} at step {t} of tasks "
+            f"{sorted(set(names))}; expected ({n}, {ACTION_DIM}): one {ACTION_DIM}-d action per environment"
+        )
+    finite = torch.isfinite(action).all(-1).numpy()
+    bad = np.flatnonzero(running & ~finite)
+    if bad.size:
+        raise ValueError(
+            f"the policy returned non-finite actions at step {t} for task(s) "
+            f"{sorted({names[i] for i in bad})}: {action[torch.as_tensor(bad[:3])].tolist()}"
+        )
+
+
+def write_rollouts(df: pd.DataFrame, path: str | os.PathLike) -> None:
+    """Write the rollout table as CSV atomically: a temporary file in the same folder, then ``os.replace``."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".rollouts-", suffix=".csv.tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            df.to_csv(f, index=False)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise

@@ -1,0 +1,209 @@
+"""The evaluation collector on real MetaWorld: expert rollouts match a plain gymnasium loop, errors are clear."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from tar_rl.collectors import evaluate as ev
+from tar_rl.collectors import tasks
+from tar_rl.collectors.envs import make_metaworld_env
+from tar_rl.collectors.evaluate import ExpertPolicy, evaluate, write_rollouts
+
+EASY = ["reach-v3", "button-press-topdown-v3", "drawer-close-v3"]
+
+
+class ConstPolicy(TensorDictModuleBase):
+    """Writes a constant action; records the task ids and first observations it sees."""
+
+    in_keys = ["observation", "task_id"]
+    out_keys = ["action"]
+
+    def __init__(self, value=0.0, dim=4, nan_at_step=None):
+        super().__init__()
+        self.value, self.dim, self.nan_at_step = value, dim, nan_at_step
+        self.calls = 0
+        self.task_ids: list[list[int]] = []
+        self.first_obs: list[np.ndarray] = []
+
+    def forward(self, td):
+        self.calls += 1
+        n = td.batch_size[0]
+        if self.calls == 1:
+            self.first_obs.append(td["observation"].numpy().copy())
+        self.task_ids.append(td["task_id"].tolist())
+        action = torch.full((n, self.dim), self.value)
+        if self.nan_at_step is not None and self.calls == self.nan_at_step:
+            action[0, 0] = float("nan")
+        td.set("action", action)
+        return td
+
+
+def plain_expert_rollout(task, seed, k, horizon):
+    """The expert on a bare gymnasium env: float32 observations and actions, clipped, stop at first success."""
+    env = tasks.make_env(task)
+    env.set_task(tasks.variation(task, seed, k))
+    policy = tasks.expert(task)
+    obs, _ = env.reset()
+    total = 0.0
+    for t in range(1, horizon + 1):
+        seen = obs.astype(np.float32).astype(np.float64)
+        action = np.clip(policy.get_action(seen), -1.0, 1.0).astype(np.float32)
+        obs, reward, _, _, info = env.step(action)
+        total += float(reward)  # float64 sum (some tasks give numpy float32 rewards)
+        if info["success"]:
+            return True, t, total
+    return False, horizon, total
+
+
+@pytest.fixture(scope="module")
+def expert_rows():
+    return evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=1, progress=False)
+
+
+def test_expert_succeeds_and_matches_a_plain_loop(expert_rows):
+    df = expert_rows
+    assert list(df.columns) == list(ev.COLUMNS)
+    assert len(df) == 6
+    assert list(df["task"]) == sorted(EASY * 2)  # TASKS order is alphabetical
+    for row in df.itertuples(index=False, name="Row"):
+        success, steps, total = plain_expert_rollout(row.task, 1000, row.variation_index, 200)
+        assert row.success is True and success
+        assert row.steps == steps
+        assert 10 < row.steps < 200
+        assert row.rho == steps / 200
+        assert row[ev.COLUMNS.index("return")] == total  # exact float64 sum of the same rewards
+        assert row.failure == ""
+        assert row.task_id == tasks.TASKS.index(row.task)
+        assert row.group == "easy"
+        assert row.variation_seed == 1000
+    assert sorted(df.groupby("task")["variation_index"].apply(list).tolist()) == [[0, 1]] * 3
+
+
+def test_zero_action_fails_on_reach_with_full_budget():
+    df = evaluate(ConstPolicy(0.0), "reach", rollouts_per_task=2, horizon=30, workers=1, progress=False)
+    assert (~df["success"]).all()
+    assert (df["steps"] == 30).all()
+    assert (df["rho"] == 1.0).all()
+    assert (df["failure"] == "").all()
+
+
+def test_policy_reads_task_id_per_env_and_variations_differ():
+    policy = ConstPolicy(0.0)
+    evaluate(policy, ["reach", "drawer-close"], rollouts_per_task=3, horizon=5, workers=1, progress=False)
+    expected = [tasks.TASKS.index("drawer-close-v3")] * 3 + [tasks.TASKS.index("reach-v3")] * 3
+    assert policy.task_ids[0] == expected
+    assert all(ids == expected for ids in policy.task_ids)
+    goals = policy.first_obs[0][:, 36:39]  # the goal is visible in the observation
+    for a in range(3):
+        for b in range(a + 1, 3):
+            assert not np.allclose(goals[a], goals[b])  # drawer-close rollouts: distinct variations
+            assert not np.allclose(goals[3 + a], goals[3 + b])  # reach rollouts
+
+
+def test_wrong_action_shape_names_task_and_step():
+    with pytest.raises(ValueError, match=r"shape \(1, 3\) at step 1 of tasks \['reach-v3'\]"):
+        evaluate(ConstPolicy(0.0, dim=3), "reach", rollouts_per_task=1, horizon=5, workers=1, progress=False)
+
+
+def test_nan_action_names_task_and_step():
+    with pytest.raises(ValueError, match=r"non-finite actions at step 3 for task\(s\) \['reach-v3'\]"):
+        evaluate(ConstPolicy(0.0, nan_at_step=3), "reach", rollouts_per_task=2, horizon=10, workers=1, progress=False)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"rollouts_per_task": 0}, "rollouts_per_task must be >= 1, got 0"),
+        ({"horizon": 0}, "horizon must be between 1 and 500, got 0"),
+        ({"horizon": 501}, "horizon must be between 1 and 500, got 501"),
+        ({"tasks_spec": "reach,not-a-task"}, "unknown MetaWorld task or group"),
+    ],
+)
+def test_bad_arguments_fail_before_any_work(monkeypatch, kwargs, message):
+    def no_env(task):
+        raise AssertionError("an environment was built")
+
+    monkeypatch.setattr(tasks, "make_env", no_env)
+    args = {"tasks_spec": "reach", **kwargs}
+    with pytest.raises(ValueError, match=message):
+        evaluate(ConstPolicy(), progress=False, workers=1, **args)
+
+
+def test_not_a_tensordict_module():
+    with pytest.raises(TypeError, match="policy must be a TensorDictModule"):
+        evaluate(lambda td: td, "reach", workers=1, progress=False)
+
+
+def test_env_error_and_instability_are_recorded_and_the_rest_continue(monkeypatch):
+    real = tasks.make_env
+    built = []
+
+    def patched(task):
+        env = real(task)
+        built.append(env)
+        which = len(built)
+        inner = env.step
+        count = [0]
+
+        def step(action):
+            count[0] += 1
+            if which == 1 and count[0] == 4:
+                raise RuntimeError("boom in env 1")
+            out = inner(action)
+            if which == 2 and count[0] == 6:
+                env._did_see_sim_exception = True  # what MetaWorld sets on a MuJoCo instability
+            return out
+
+        env.step = step
+        return env
+
+    monkeypatch.setattr(tasks, "make_env", patched)
+    df = evaluate(ExpertPolicy(), "reach", rollouts_per_task=3, horizon=150, workers=1, progress=False)
+    assert list(df["failure"][:2]) == ["RuntimeError: boom in env 1", "MuJoCo simulation became unstable"]
+    assert list(df["success"]) == [False, False, True]
+    assert list(df["steps"][:2]) == [150, 150]
+    _, steps, total = plain_expert_rollout("reach-v3", 1000, 2, 150)
+    assert (df["steps"][2], df["return"][2], df["failure"][2]) == (steps, total, "")
+
+
+def test_batches_smaller_than_the_shard_give_the_same_rows(expert_rows):
+    df = evaluate(
+        ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=1, envs_per_worker=4, progress=False
+    )
+    pd.testing.assert_frame_equal(df, expert_rows)
+
+
+@pytest.mark.slow
+def test_two_workers_give_the_same_rows(expert_rows):
+    df = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
+    pd.testing.assert_frame_equal(df, expert_rows)
+
+
+def test_write_rollouts_atomic(tmp_path, expert_rows):
+    path = tmp_path / "sub" / "rollouts.csv"
+    write_rollouts(expert_rows, path)
+    back = pd.read_csv(path, keep_default_na=False)
+    assert os.listdir(path.parent) == ["rollouts.csv"]
+    assert list(back["steps"]) == list(expert_rows["steps"])
+    assert list(back["success"]) == list(expert_rows["success"])
+    np.testing.assert_allclose(back["return"], expert_rows["return"], rtol=1e-12)
+
+
+def test_make_metaworld_env_entries():
+    env = make_metaworld_env("reach", tasks.variation("reach-v3", 1000, 0))
+    td = env.reset()
+    assert td["observation"].dtype == torch.float32 and td["observation"].shape == (39,)
+    assert td["task_id"].item() == tasks.TASKS.index("reach-v3") and td["task_id"].dtype == torch.int64
+    td["action"] = torch.zeros(4)
+    nxt = env.step(td)["next"]
+    assert nxt["success"].dtype == torch.bool and nxt["success"].shape == ()
+    assert nxt["task_id"].item() == tasks.TASKS.index("reach-v3")
+    assert nxt["reward"].dtype == torch.float64
+    with pytest.raises(ValueError, match="nope"):
+        make_metaworld_env("nope")
