@@ -1,0 +1,319 @@
+"""Scripted-expert demonstrations on MetaWorld v3 (installed as ``tar_rl.collectors.demos``).
+
+``collect_task`` rolls MetaWorld's scripted expert out on the variations ``tasks.variation(task,
+seed, j)`` for ``j = 0, 1, 2, ...`` and keeps the episodes that succeed, stopping each episode at
+its FIRST success (``info["success"]``) or at the 500-step horizon. Failed episodes are counted
+and discarded. The environment is clipped-action stepped: the expert's raw action can reach
++-12, and the stored supervision target ``action`` is that action clipped to the action space
+``[-1, 1]`` (the raw one is kept as ``action_raw``).
+
+``collect`` shards a list of tasks over independent worker processes (one task per job, the
+``spawn`` start method, one torch thread per worker), shows a progress bar per finished task
+and prints a summary. Results come back as numpy arrays, one :class:`TaskDemos` per task.
+
+The per-step loop writes into preallocated numpy arrays and does nothing else in Python, so that
+collection runs at nearly the bare expert-rollout rate.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import sys
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tar_rl.collectors import tasks as _tasks
+
+__all__ = ["ACTION_DIM", "HORIZON", "OBS_DIM", "TaskDemos", "collect", "collect_task", "default_max_attempts"]
+
+HORIZON = 500  # MetaWorld v3's episode length: step 500 returns truncated=True, step 501 raises
+OBS_DIM = 39
+ACTION_DIM = 4
+
+
+def default_max_attempts(n_demos: int) -> int:
+    """Episodes tried per task before giving up: ``3 * n_demos + 5``."""
+    return 3 * n_demos + 5
+
+
+@dataclass
+class TaskDemos:
+    """The kept (successful) demonstrations of one task, concatenated episode after episode.
+
+    ``N`` is the total number of steps, ``E`` the number of kept episodes.
+
+    Attributes:
+        task: the MetaWorld v3 task name.
+        observation: ``[N, 39]`` float32, the observation the expert acted on.
+        action_raw: ``[N, 4]`` float32, the expert's unclipped action.
+        action: ``[N, 4]`` float32, ``clip(action_raw, -1, 1)``: the action the env executed and
+            the supervision target.
+        next_observation: ``[N, 39]`` float32.
+        reward: ``[N]`` float32.
+        terminated: ``[N]`` bool, True on the step that first reached success (each episode's last).
+        truncated: ``[N]`` bool, True on step 500 (the horizon).
+        step: ``[N]`` int64, the step index within its episode (0-based).
+        lengths: ``[E]`` int64, episode lengths (sum = ``N``).
+        variation_index: ``[E]`` int64, ``j`` in ``tasks.variation(task, seed, j)``.
+        variation_seed: ``[E]`` int64, the MT1 seed that variation comes from.
+        seed: the base seed.
+        attempts: episodes rolled out (kept + rejected).
+        rejected: failed episodes (no success within the horizon), discarded.
+        rejected_index: the ``j`` of the rejected episodes.
+        seconds: wall time of the collection in the worker.
+    """
+
+    task: str
+    observation: np.ndarray
+    action_raw: np.ndarray
+    action: np.ndarray
+    next_observation: np.ndarray
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    step: np.ndarray
+    lengths: np.ndarray
+    variation_index: np.ndarray
+    variation_seed: np.ndarray
+    seed: int
+    attempts: int
+    rejected: int
+    rejected_index: list[int] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def kept(self) -> int:
+        """Number of kept episodes."""
+        return len(self.lengths)
+
+    @property
+    def steps(self) -> int:
+        """Number of stored steps."""
+        return len(self.step)
+
+
+def _check_positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+    return int(value)
+
+
+def _check_seed(seed) -> int:
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
+    return int(seed)
+
+
+def _rollout(env, policy, buf: dict[str, np.ndarray]) -> tuple[int, bool]:
+    """One expert episode into the preallocated buffers; returns (length, succeeded)."""
+    obs_buf, raw_buf, act_buf, rew_buf = buf["obs"], buf["raw"], buf["act"], buf["rew"]
+    obs, _ = env.reset()
+    obs_buf[0] = obs
+    get_action = policy.get_action
+    step = env.step
+    for t in range(HORIZON):
+        raw = get_action(obs)
+        raw_buf[t] = raw
+        act = np.clip(raw, -1.0, 1.0)
+        act_buf[t] = act
+        obs, reward, _terminated, truncated, info = step(act)
+        obs_buf[t + 1] = obs
+        rew_buf[t] = reward
+        if info["success"]:
+            return t + 1, True
+        if truncated:
+            return t + 1, False
+    return HORIZON, False  # unreachable: MetaWorld truncates at step 500
+
+
+def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | None = None) -> TaskDemos:
+    """Roll the scripted expert out on ``task`` until ``n_demos`` episodes succeed.
+
+    Episode ``j`` (``j = 0, 1, ...``) uses variation ``tasks.variation(task, seed, j)``; one
+    environment is built and reused. Each episode stops at its first success (kept) or at the
+    horizon (rejected).
+
+    Args:
+        task: a MetaWorld v3 task name (the ``-v3`` suffix is optional).
+        n_demos: successful episodes to keep.
+        seed: base seed of the variations.
+        max_attempts: episodes to try at most; default ``3 * n_demos + 5``.
+
+    Returns:
+        A :class:`TaskDemos` with ``n_demos`` episodes.
+
+    Raises:
+        ValueError: bad arguments or an unknown task (listing the valid names).
+        RuntimeError: fewer than ``n_demos`` successes within ``max_attempts`` episodes, naming
+            the task and the counts.
+    """
+    if not isinstance(task, str):
+        raise ValueError(f"collect_task takes one task name (a str), got {task!r}.")
+    resolved = _tasks.resolve_tasks([task])  # raises listing the valid names
+    if len(resolved) != 1:
+        raise ValueError(f"collect_task takes one task name, got the group {task!r}: use collect() for groups.")
+    (task,) = resolved
+    n_demos = _check_positive_int("n_demos", n_demos)
+    seed = _check_seed(seed)
+    max_attempts = default_max_attempts(n_demos) if max_attempts is None else max_attempts
+    max_attempts = _check_positive_int("max_attempts", max_attempts)
+    if max_attempts < n_demos:
+        raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
+
+    start = time.perf_counter()
+    env = _tasks.make_env(task)
+    policy = _tasks.expert(task)
+    buf = {
+        "obs": np.empty((HORIZON + 1, OBS_DIM), np.float32),
+        "raw": np.empty((HORIZON, ACTION_DIM), np.float32),
+        "act": np.empty((HORIZON, ACTION_DIM), np.float32),
+        "rew": np.empty((HORIZON,), np.float32),
+    }
+    episodes: list[tuple[np.ndarray, ...]] = []
+    kept_index: list[int] = []
+    rejected_index: list[int] = []
+    j = 0
+    while len(kept_index) < n_demos and j < max_attempts:
+        env.set_task(_tasks.variation(task, seed, j))
+        length, ok = _rollout(env, policy, buf)
+        if ok:
+            episodes.append(
+                (
+                    buf["obs"][: length + 1].copy(),
+                    buf["raw"][:length].copy(),
+                    buf["act"][:length].copy(),
+                    buf["rew"][:length].copy(),
+                )
+            )
+            kept_index.append(j)
+        else:
+            rejected_index.append(j)
+        j += 1
+    env.close()
+    if len(kept_index) < n_demos:
+        raise RuntimeError(
+            f"task {task!r}: the scripted expert succeeded in only {len(kept_index)} of {j} episodes "
+            f"(seed {seed}, max_attempts={max_attempts}), {n_demos} demonstrations were asked for. "
+            "Raise max_attempts or ask for fewer demonstrations."
+        )
+
+    lengths = np.array([len(e[1]) for e in episodes], dtype=np.int64)
+    ends = np.cumsum(lengths)
+    terminated = np.zeros(int(ends[-1]), dtype=bool)
+    terminated[ends - 1] = True
+    truncated = np.concatenate([np.arange(1, n + 1) == HORIZON for n in lengths])
+    return TaskDemos(
+        task=task,
+        observation=np.concatenate([e[0][:-1] for e in episodes]),
+        action_raw=np.concatenate([e[1] for e in episodes]),
+        action=np.concatenate([e[2] for e in episodes]),
+        next_observation=np.concatenate([e[0][1:] for e in episodes]),
+        reward=np.concatenate([e[3] for e in episodes]),
+        terminated=terminated,
+        truncated=truncated,
+        step=np.concatenate([np.arange(n, dtype=np.int64) for n in lengths]),
+        lengths=lengths,
+        variation_index=np.array(kept_index, dtype=np.int64),
+        variation_seed=np.array([seed + k // _tasks.VARIATIONS_PER_SEED for k in kept_index], dtype=np.int64),
+        seed=seed,
+        attempts=j,
+        rejected=len(rejected_index),
+        rejected_index=rejected_index,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def _worker_init() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _job(args: tuple[str, int, int, int | None]) -> TaskDemos:
+    return collect_task(*args)
+
+
+def collect(
+    tasks_spec: str | Iterable[str],
+    n_demos: int,
+    seed: int = 0,
+    workers: int | None = None,
+    max_attempts: int | None = None,
+    *,
+    progress: bool = True,
+    verbose: bool = True,
+) -> dict[str, TaskDemos]:
+    """Collect ``n_demos`` successful expert demonstrations for every task of ``tasks_spec``.
+
+    Tasks are sharded over ``workers`` independent processes (``spawn`` start method; each
+    sets ``torch.set_num_threads(1)``). ``workers`` 0 or 1 collects in this process.
+
+    Args:
+        tasks_spec: a task, group or list of them, see ``tasks.resolve_tasks``.
+        n_demos: successful episodes to keep per task.
+        seed: base seed of the variations (the same for every task).
+        workers: processes; default ``os.cpu_count()``, never more than the number of tasks.
+        max_attempts: episodes to try per task at most; default ``3 * n_demos + 5``.
+        progress: show a tqdm bar advancing per finished task.
+        verbose: print a summary (tasks, demos kept/rejected, steps, time).
+
+    Returns:
+        ``{task: TaskDemos}`` in ``TASKS`` order.
+
+    Raises:
+        ValueError: unknown tasks (listing the valid ones) or bad arguments, before any work.
+        RuntimeError: a task whose expert did not reach ``n_demos`` successes (see ``collect_task``).
+    """
+    names = _tasks.resolve_tasks(tasks_spec)
+    n_demos = _check_positive_int("n_demos", n_demos)
+    seed = _check_seed(seed)
+    if max_attempts is not None:
+        _check_positive_int("max_attempts", max_attempts)
+        if max_attempts < n_demos:
+            raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
+    if workers is None:
+        workers = os.cpu_count() or 1
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 0:
+        raise ValueError(f"workers must be a non-negative integer or None, got {workers!r}.")
+    workers = min(int(workers), len(names))
+
+    from tqdm.auto import tqdm
+
+    start = time.perf_counter()
+    jobs = [(name, n_demos, seed, max_attempts) for name in names]
+    results: dict[str, TaskDemos] = {}
+    bar = tqdm(total=len(names), desc="demonstrations", unit="task", disable=not progress, file=sys.stderr)
+    try:
+        if workers <= 1:
+            for job in jobs:
+                out = _job(job)
+                results[out.task] = out
+                bar.update(1)
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(workers, initializer=_worker_init) as pool:
+                for out in pool.imap_unordered(_job, jobs):
+                    results[out.task] = out
+                    bar.update(1)
+                    bar.set_postfix_str(out.task, refresh=False)
+    finally:
+        bar.close()
+    elapsed = time.perf_counter() - start
+    results = {name: results[name] for name in names}
+    if verbose:
+        kept = sum(r.kept for r in results.values())
+        rejected = sum(r.rejected for r in results.values())
+        steps = sum(r.steps for r in results.values())
+        print(
+            f"collected {len(names)} tasks: {kept} demonstrations kept, {rejected} rejected, "
+            f"{steps} steps in {elapsed:.1f} s ({steps / max(elapsed, 1e-9):.0f} steps/s, "
+            f"{max(workers, 1)} worker{'s' if workers > 1 else ''})"
+        )
+        for r in results.values():
+            if r.rejected:
+                print(f"  {r.task}: {r.rejected} of {r.attempts} episodes rejected (no success in {HORIZON} steps)")
+    return results

@@ -1,0 +1,554 @@
+"""MetaWorld demonstration datasets on disk: a TorchRL replay buffer plus a metadata file.
+
+``build_dataset(root, tasks, n_demos, ...)`` collects scripted-expert demonstrations
+(:mod:`tar_rl.collectors.demos`) and stores them, one row per environment step, in a
+``TensorDictReplayBuffer`` over a ``LazyMemmapStorage`` under ``root/<name>/buffer`` (written
+with ``rb.dumps``; ``rb.loads`` reads it back in place, without copying). ``metadata.json``
+beside it describes the content. The folder name is a hash of everything that determines the
+content, so a second ``build_dataset`` with the same settings loads the existing folder.
+
+Layout of one dataset folder::
+
+    metaworld-demos-<key>/
+        buffer/              rb.dumps(): storage/ (memmaps), storage_metadata.json, ...
+        metadata.json        written last: its presence marks a complete dataset
+
+Crash safety: a dataset is built in a temporary sibling folder ``.<name>.tmp-<pid>-<rand>`` and
+renamed into place only when complete. A folder that fails the checks on load (missing or
+unparsable metadata, missing storage files, a length that disagrees with the metadata) is
+reported, removed and rebuilt by ``build_dataset``; ``load_dataset`` raises
+:class:`DatasetError` for it.
+
+Keys per step (``N`` steps, chunk horizon ``H``):
+
+* ``observation`` [39] float32, ``action`` [4] float32 (the expert action clipped to [-1, 1]:
+  the supervision target), ``action_raw`` [4] float32 (unclipped),
+* ``("next", "observation")`` [39] float32, ``("next", "reward")`` [1] float32,
+  ``("next", "done")``, ``("next", "terminated")``, ``("next", "truncated")`` [1] bool
+  (``terminated`` on the success step that ends every kept episode),
+* ``episode`` int64 (global id, contiguous in storage), ``task_id`` int64
+  (``tasks.task_index``), ``step`` int64 (index within the episode),
+* ``action_chunk`` [H, 4] float32: the clipped actions ``t .. t+H-1`` of the same episode, past
+  the episode end the last action repeated; ``action_chunk_valid`` [H] bool, True on real steps.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import json
+import logging
+import os
+import shutil
+import time
+import uuid
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer
+
+from tar_rl.collectors import demos as _demos
+from tar_rl.collectors import tasks as _tasks
+
+__all__ = [
+    "FORMAT_VERSION",
+    "DatasetError",
+    "DemoDataset",
+    "SegmentSampler",
+    "build_dataset",
+    "cache_key",
+    "load_dataset",
+]
+
+logger = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+METADATA_FILE = "metadata.json"
+BUFFER_DIR = "buffer"
+NAME_PREFIX = "metaworld-demos-"
+ACTION_TARGET = "expert action clipped to the action space [-1, 1]; the unclipped action is action_raw"
+TASK_ORDER = "tar_rl.collectors.tasks.TASKS: the 50 MetaWorld v3 names in alphabetical order; task_id is the index"
+VALID_KEY = ("collector", "mask")
+
+
+class DatasetError(RuntimeError):
+    """A dataset folder is incomplete or inconsistent with its metadata."""
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def _settings(tasks: tuple[str, ...], n_demos: int, seed: int, chunk_horizon: int, max_attempts: int) -> dict:
+    return {
+        "tasks": list(tasks),
+        "n_demos": n_demos,
+        "seed": seed,
+        "chunk_horizon": chunk_horizon,
+        "max_attempts": max_attempts,
+        "format_version": FORMAT_VERSION,
+        "metaworld": _version("metaworld"),
+    }
+
+
+def cache_key(settings: dict) -> str:
+    """16 hex digits of the SHA-256 of the settings that determine a dataset's content."""
+    blob = json.dumps(settings, sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+    return int(value)
+
+
+# -- Building ---------------------------------------------------------------------------------
+
+
+def _chunks(action: np.ndarray, lengths: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """``[N, H, A]`` action chunks and their ``[N, H]`` validity from per-episode lengths."""
+    ends = np.repeat(np.cumsum(lengths), lengths)  # [N] one past the last row
+    rows = np.arange(len(action))[:, None] + np.arange(horizon)[None, :]  # [N, H]
+    valid = rows < ends[:, None]
+    rows = np.minimum(rows, ends[:, None] - 1)
+    return action[rows], valid
+
+
+def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int) -> TensorDict:
+    """One flat ``[N]`` TensorDict of all tasks, episodes numbered in task order."""
+    cat = {
+        k: np.concatenate([getattr(r, k) for r in results.values()])
+        for k in (
+            "observation",
+            "action",
+            "action_raw",
+            "next_observation",
+            "reward",
+            "terminated",
+            "truncated",
+            "step",
+        )
+    }
+    lengths = np.concatenate([r.lengths for r in results.values()])
+    n = int(lengths.sum())
+    episode = np.repeat(np.arange(len(lengths), dtype=np.int64), lengths)
+    task_id = np.concatenate([np.full(r.steps, _tasks.task_index(r.task), dtype=np.int64) for r in results.values()])
+    chunk, chunk_valid = _chunks(cat["action"], lengths, horizon)
+    terminated = cat["terminated"][:, None]
+    truncated = cat["truncated"][:, None]
+    t = torch.from_numpy
+    return TensorDict(
+        {
+            "observation": t(cat["observation"]),
+            "action": t(cat["action"]),
+            "action_raw": t(cat["action_raw"]),
+            "episode": t(episode),
+            "task_id": t(task_id),
+            "step": t(cat["step"]),
+            "action_chunk": t(np.ascontiguousarray(chunk)),
+            "action_chunk_valid": t(chunk_valid),
+            "next": {
+                "observation": t(cat["next_observation"]),
+                "reward": t(cat["reward"][:, None]),
+                "done": t(terminated | truncated),
+                "terminated": t(terminated),
+                "truncated": t(truncated),
+            },
+        },
+        batch_size=[n],
+    )
+
+
+def _stats(x: np.ndarray) -> dict[str, list[float]]:
+    x = x.astype(np.float64)
+    return {
+        "mean": x.mean(0).tolist(),
+        "std": x.std(0).tolist(),
+        "min": x.min(0).tolist(),
+        "max": x.max(0).tolist(),
+    }
+
+
+def _metadata(settings: dict, key: str, results: dict[str, _demos.TaskDemos], data: TensorDict, secs: float) -> dict:
+    import tar_rl
+
+    seed = settings["seed"]
+    per_task = {}
+    for r in results.values():
+        per_task[r.task] = {
+            "task_id": _tasks.task_index(r.task),
+            "instruction": _tasks.INSTRUCTIONS[r.task],
+            "kept": r.kept,
+            "rejected": r.rejected,
+            "attempts": r.attempts,
+            "steps": r.steps,
+            "variation_seeds": list(_tasks.variation_seeds(seed, r.attempts)),
+            "episode_variation_index": r.variation_index.tolist(),
+            "episode_variation_seed": r.variation_seed.tolist(),
+            "episode_lengths": r.lengths.tolist(),
+            "rejected_variation_index": list(r.rejected_index),
+        }
+    all_seeds = sorted({s for t in per_task.values() for s in t["variation_seeds"]})
+    return {
+        "format_version": FORMAT_VERSION,
+        "cache_key": key,
+        "settings": settings,
+        "tasks": list(results),
+        "task_ids": {name: p["task_id"] for name, p in per_task.items()},
+        "instructions": {name: p["instruction"] for name, p in per_task.items()},
+        "task_order": TASK_ORDER,
+        "seed": seed,
+        "n_demos": settings["n_demos"],
+        "max_attempts": settings["max_attempts"],
+        "variation_seeds": all_seeds,
+        "per_task": per_task,
+        "total_steps": int(data.shape[0]),
+        "total_episodes": sum(p["kept"] for p in per_task.values()),
+        "total_rejected": sum(p["rejected"] for p in per_task.values()),
+        "chunk_horizon": settings["chunk_horizon"],
+        "keys": _leaf_specs(data),
+        "horizon": _demos.HORIZON,
+        "action_target": ACTION_TARGET,
+        "stats": {
+            "observation": _stats(data["observation"].numpy()),
+            "action": _stats(data["action"].numpy()),
+            "action_raw": _stats(data["action_raw"].numpy()),
+        },
+        "versions": {
+            "tar_rl": tar_rl.__version__,
+            "torch": torch.__version__,
+            "torchrl": _version("torchrl"),
+            "tensordict": _version("tensordict"),
+            "metaworld": _version("metaworld"),
+            "mujoco": _version("mujoco"),
+            "numpy": np.__version__,
+        },
+        "collection_seconds": secs,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+
+
+def _write_json_atomic(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return False  # our own leftovers (from an earlier failed build in this process) are stale
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _clean_temp_siblings(root: Path, name: str) -> None:
+    """Remove temporary build folders of ``name`` left by processes that no longer run."""
+    for tmp in root.glob(f".{name}.tmp-*"):
+        try:
+            pid = int(tmp.name.rsplit(".tmp-", 1)[1].split("-")[0])
+        except (IndexError, ValueError):
+            pid = -1
+        if pid > 0 and _pid_alive(pid):
+            continue
+        msg = f"removing the leftover temporary dataset folder {tmp} (an interrupted build)"
+        logger.warning(msg)
+        print(msg)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def build_dataset(
+    root: str | os.PathLike,
+    tasks: str | Iterable[str],
+    n_demos: int,
+    seed: int = 0,
+    chunk_horizon: int = 8,
+    workers: int | None = None,
+    max_attempts: int | None = None,
+    *,
+    progress: bool = True,
+    verbose: bool = True,
+) -> DemoDataset:
+    """Collect (or load from the cache under ``root``) a MetaWorld demonstration dataset.
+
+    Args:
+        root: folder holding datasets; each lives in ``root/metaworld-demos-<key>``.
+        tasks: tasks or groups, see ``tasks.resolve_tasks`` (errors list the valid names).
+        n_demos: successful demonstrations per task.
+        seed: base seed of the variations (``tasks.variation(task, seed, j)``).
+        chunk_horizon: ``H`` of ``action_chunk`` (``[H, 4]`` per step).
+        workers: collection processes, default ``os.cpu_count()``; 0 or 1: in this process.
+        max_attempts: episodes per task at most; default ``3 * n_demos + 5``.
+        progress: show a progress bar while collecting.
+        verbose: print a summary of the collection.
+
+    Returns:
+        The :class:`DemoDataset`.
+
+    Raises:
+        ValueError: unknown tasks or bad arguments, before any collection.
+        RuntimeError: a task whose expert did not reach ``n_demos`` successes.
+    """
+    names = _tasks.resolve_tasks(tasks)
+    n_demos = _positive_int("n_demos", n_demos)
+    chunk_horizon = _positive_int("chunk_horizon", chunk_horizon)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
+    seed = int(seed)
+    max_attempts = _demos.default_max_attempts(n_demos) if max_attempts is None else max_attempts
+    max_attempts = _positive_int("max_attempts", max_attempts)
+    if max_attempts < n_demos:
+        raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
+
+    root = Path(root)
+    settings = _settings(names, n_demos, seed, chunk_horizon, max_attempts)
+    key = cache_key(settings)
+    name = NAME_PREFIX + key
+    final = root / name
+    root.mkdir(parents=True, exist_ok=True)
+    _clean_temp_siblings(root, name)
+
+    if final.exists():
+        try:
+            return load_dataset(final)
+        except DatasetError as err:
+            msg = f"dataset {final} is incomplete or corrupt ({err}); removing it and building it again"
+            logger.warning(msg)
+            print(msg)
+            shutil.rmtree(final)
+
+    start = time.perf_counter()
+    results = _demos.collect(
+        names, n_demos, seed=seed, workers=workers, max_attempts=max_attempts, progress=progress, verbose=verbose
+    )
+    secs = time.perf_counter() - start
+    data = _to_tensordict(results, chunk_horizon)
+
+    tmp = root / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    try:
+        tmp.mkdir()
+        buffer_dir = tmp / BUFFER_DIR
+        storage = LazyMemmapStorage(data.shape[0], scratch_dir=buffer_dir / "storage")
+        rb = TensorDictReplayBuffer(storage=storage)
+        rb.extend(data)
+        rb.dumps(buffer_dir)
+        del rb, storage
+        _write_json_atomic(tmp / METADATA_FILE, _metadata(settings, key, results, data, secs))  # last: the marker
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            # Another process finished the same dataset first: use it if it is complete.
+            if not final.exists():
+                raise
+            try:
+                return load_dataset(final)
+            except DatasetError:
+                shutil.rmtree(final)
+                os.rename(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return load_dataset(final)
+
+
+# -- Loading ----------------------------------------------------------------------------------
+
+
+def load_dataset(path: str | os.PathLike) -> DemoDataset:
+    """Open the dataset folder ``path`` (memory-mapped, no copy).
+
+    Raises:
+        DatasetError: the folder is missing, its metadata is missing or unparsable, a storage
+            file is missing or has the wrong size, or the stored length disagrees with the
+            metadata.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise DatasetError(f"no dataset folder at {path}")
+    meta_path = path / METADATA_FILE
+    if not meta_path.is_file():
+        raise DatasetError(f"{meta_path} is missing (the build did not finish)")
+    try:
+        metadata = json.loads(meta_path.read_text())
+        total = int(metadata["total_steps"])
+        version = metadata["format_version"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise DatasetError(f"{meta_path} cannot be read: {err}") from err
+    if version != FORMAT_VERSION:
+        raise DatasetError(f"{path} has format version {version!r}, this tar-rl reads {FORMAT_VERSION}")
+    buffer_dir = path / BUFFER_DIR
+    storage_meta = buffer_dir / "storage" / "storage_metadata.json"
+    if not storage_meta.is_file():
+        raise DatasetError(f"{storage_meta} is missing")
+    try:
+        stored_len = int(json.loads(storage_meta.read_text())["len"])
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise DatasetError(f"{storage_meta} cannot be read: {err}") from err
+    if stored_len != total:
+        raise DatasetError(f"the storage holds {stored_len} steps, the metadata says {total}")
+    # Before opening: a memory map over a truncated file would be silently zero-extended.
+    _check_storage_files(buffer_dir / "storage", metadata, total)
+    try:
+        storage = LazyMemmapStorage(total, scratch_dir=buffer_dir / "storage", existsok=True)
+        rb = TensorDictReplayBuffer(storage=storage)
+        rb.loads(buffer_dir)
+    except Exception as err:  # torchrl/tensordict raise many kinds for missing or truncated memmaps
+        raise DatasetError(f"the storage in {buffer_dir} cannot be loaded: {type(err).__name__}: {err}") from err
+    if len(rb) != total:
+        raise DatasetError(f"the storage holds {len(rb)} steps, the metadata says {total}")
+    stored = {_key_name(k): v for k, v in rb.storage._storage.items(True, True)}
+    for name, spec in metadata["keys"].items():
+        value = stored.get(name)
+        if value is None or list(value.shape) != [total, *spec["shape"]] or _dtype_name(value.dtype) != spec["dtype"]:
+            raise DatasetError(f"storage entry {name!r} does not match the metadata {spec}")
+    return DemoDataset(path, rb, metadata)
+
+
+def _key_name(key) -> str:
+    return ".".join(key) if isinstance(key, tuple) else key
+
+
+def _dtype_name(dtype: torch.dtype) -> str:
+    return str(dtype).removeprefix("torch.")
+
+
+def _leaf_specs(data: TensorDict) -> dict[str, dict]:
+    """``{"next.observation": {"shape": [39], "dtype": "float32"}, ...}``: each entry's per-step shape."""
+    return {
+        _key_name(k): {"shape": list(v.shape[1:]), "dtype": _dtype_name(v.dtype)} for k, v in data.items(True, True)
+    }
+
+
+def _check_storage_files(storage_dir: Path, metadata: dict, total: int) -> None:
+    """Every entry listed in the metadata has its memmap file, at least as large as ``total`` steps need."""
+    keys = metadata.get("keys")
+    if not isinstance(keys, dict) or not keys:
+        raise DatasetError("the metadata lists no stored entries ('keys')")
+    for name, spec in keys.items():
+        file = storage_dir / (name.replace(".", os.sep) + ".memmap")
+        try:
+            itemsize = torch.empty((), dtype=getattr(torch, spec["dtype"])).element_size()
+            need = total * int(np.prod(spec["shape"], dtype=np.int64)) * itemsize
+        except (AttributeError, KeyError, TypeError) as err:
+            raise DatasetError(f"the metadata's entry {name!r} is unreadable: {spec!r}") from err
+        if not file.is_file():
+            raise DatasetError(f"storage file {file} is missing")
+        size = file.stat().st_size
+        if size < need:
+            raise DatasetError(f"storage file {file} holds {size} bytes, {need} expected (truncated)")
+
+
+# -- The dataset ------------------------------------------------------------------------------
+
+
+class SegmentSampler:
+    """Draws ``[B, L]`` segments of the dataset's episodes with TorchRL's ``SliceSampler``.
+
+    ``buffer`` is a ``TensorDictReplayBuffer`` sharing the dataset's storage, sampling with
+    ``SliceSampler(slice_len=L, traj_key="episode", strict_length=False, pad_output=True)``;
+    its flat ``[B * L]`` sample is reshaped to ``[B, L]``. Segments lie within one episode;
+    ``SliceSampler`` places them so that they fit, so only a segment of an episode shorter than
+    ``L`` is cut at the episode's end and padded at its end (the last real step repeated).
+    ``("collector", "mask")`` is the ``[B, L]`` bool validity mask, True on real steps (all True
+    when no segment needed padding). The stored ``("next", "truncated")`` is
+    returned as stored (the sampler's slice-end marking is off).
+
+    Args:
+        storage: the dataset's storage.
+        batch_segments: ``B``.
+        slice_len: ``L``.
+        generator: optional ``torch.Generator`` for reproducible sampling.
+    """
+
+    def __init__(self, storage, batch_segments: int, slice_len: int, generator: torch.Generator | None = None):
+        self.batch_segments = _positive_int("batch_segments", batch_segments)
+        self.slice_len = _positive_int("slice_len", slice_len)
+        self.buffer = TensorDictReplayBuffer(
+            storage=storage,
+            sampler=SliceSampler(
+                slice_len=self.slice_len,
+                traj_key="episode",
+                strict_length=False,
+                pad_output=True,
+                cache_values=True,
+                truncated_key=None,
+            ),
+            batch_size=self.batch_segments * self.slice_len,
+            generator=generator,
+        )
+
+    def sample(self) -> TensorDict:
+        """A ``[B, L]`` TensorDict of segments with the bool mask at ``("collector", "mask")``."""
+        batch = self.buffer.sample().reshape(self.batch_segments, self.slice_len)
+        if VALID_KEY not in batch.keys(True):
+            # SliceSampler writes the mask only when some slice needed padding.
+            batch.set(VALID_KEY, torch.ones(batch.shape, dtype=torch.bool))
+        return batch
+
+    def __iter__(self) -> Iterator[TensorDict]:
+        while True:
+            yield self.sample()
+
+
+class DemoDataset:
+    """A demonstration dataset: a ``TensorDictReplayBuffer`` over memory-mapped storage plus metadata.
+
+    Attributes:
+        path: the dataset folder.
+        buffer: the ``TensorDictReplayBuffer`` (``LazyMemmapStorage`` under ``path/buffer``).
+        metadata: the parsed ``metadata.json``.
+    """
+
+    def __init__(self, path: Path, buffer: TensorDictReplayBuffer, metadata: dict):
+        self.path = Path(path)
+        self.buffer = buffer
+        self.metadata = metadata
+
+    def __len__(self) -> int:
+        """Number of stored steps."""
+        return len(self.buffer)
+
+    def __repr__(self) -> str:
+        m = self.metadata
+        return (
+            f"DemoDataset({str(self.path)!r}, tasks={len(m['tasks'])}, episodes={m['total_episodes']}, "
+            f"steps={len(self)}, chunk_horizon={m['chunk_horizon']})"
+        )
+
+    @property
+    def data(self) -> TensorDict:
+        """All stored steps as one ``[N]`` TensorDict (read from the memory maps)."""
+        return self.buffer[:]
+
+    @property
+    def tasks(self) -> list[str]:
+        """The dataset's task names, in task-id order."""
+        return list(self.metadata["tasks"])
+
+    def segments(self, batch_segments: int, slice_len: int, generator: torch.Generator | None = None) -> SegmentSampler:
+        """A sampler of ``[batch_segments, slice_len]`` segments; see :class:`SegmentSampler`."""
+        return SegmentSampler(self.buffer.storage, batch_segments, slice_len, generator=generator)
+
+    def check_disjoint(self, eval_seed: int, n_rollouts: int) -> None:
+        """Raise ``ValueError`` if evaluation seeds overlap the seeds the demonstrations used.
+
+        Args:
+            eval_seed: base seed of the evaluation variations.
+            n_rollouts: evaluation episodes per task (they use ``tasks.variation_seeds(eval_seed, n_rollouts)``).
+        """
+        _tasks.check_disjoint(self.metadata["variation_seeds"], _tasks.variation_seeds(eval_seed, n_rollouts))

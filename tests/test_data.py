@@ -1,0 +1,394 @@
+"""MetaWorld demonstration collection and the on-disk dataset (real MetaWorld, small).
+
+One module-scoped dataset (2 easy tasks x 3 demos, 2 worker processes, chunk horizon 4) is
+collected once; expected values are recomputed here from the stored arrays, from MetaWorld
+itself (replaying the stored actions) or by hand.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import metaworld
+import numpy as np
+import pytest
+import torch
+from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+from tensordict.nn import TensorDictModule
+from torchrl.objectives import BCLoss
+
+from tar_rl import TARLoss
+from tar_rl.collectors import demos, tasks
+from tar_rl.data import DatasetError, build_dataset, load_dataset
+
+TASKS = ["reach-v3", "button-press-topdown-v3"]
+N_DEMOS = 3
+H = 4
+SEED = 0
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    root = tmp_path_factory.mktemp("datasets")
+    ds = build_dataset(root, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=2, progress=False)
+    return root, ds
+
+
+@pytest.fixture(scope="module")
+def arrays(built):
+    """The stored steps as numpy arrays, read once."""
+    _, ds = built
+    td = ds.data
+    return {key: td.get(key).numpy().copy() for key in td.keys(True, True)}
+
+
+def _episodes(arrays):
+    ep = arrays["episode"]
+    return {int(e): np.flatnonzero(ep == e) for e in np.unique(ep)}
+
+
+class _ZeroPolicy:
+    def get_action(self, obs):
+        return np.zeros(4, dtype=np.float32)
+
+
+# -- Collection --------------------------------------------------------------------------
+
+
+def test_episodes_contiguous_and_end_at_first_success(built, arrays):
+    _, ds = built
+    episodes = _episodes(arrays)
+    assert len(episodes) == N_DEMOS * len(TASKS)
+    assert sorted(episodes) == list(range(N_DEMOS * len(TASKS)))
+    total = 0
+    for rows in episodes.values():
+        n = len(rows)
+        total += n
+        assert np.array_equal(rows, np.arange(rows[0], rows[0] + n)), "episode rows must be contiguous"
+        assert np.array_equal(arrays["step"][rows], np.arange(n))
+        term = arrays[("next", "terminated")][rows, 0]
+        trunc = arrays[("next", "truncated")][rows, 0]
+        assert term[-1] and not term[:-1].any()
+        assert np.array_equal(arrays[("next", "done")][rows, 0], term | trunc)
+        assert not trunc[: min(n, 499)].any()
+        # next observation of step t is the observation of step t+1
+        np.testing.assert_array_equal(arrays[("next", "observation")][rows[:-1]], arrays["observation"][rows[1:]])
+        assert n <= 500
+        assert len(np.unique(arrays["task_id"][rows])) == 1
+    assert total == len(ds) == ds.metadata["total_steps"]
+
+
+def test_replaying_stored_actions_succeeds_exactly_at_the_last_step(built, arrays):
+    """Independent check with MetaWorld itself: the stored clipped actions on the recorded
+    variation reproduce the observations, and success is first reached on the last step."""
+    _, ds = built
+    episodes = _episodes(arrays)
+    first = 0
+    for task in sorted(TASKS, key=sorted(ALL_V3_ENVIRONMENTS).index):
+        info = ds.metadata["per_task"][task]
+        bench = metaworld.MT1(task, seed=SEED)
+        env = ALL_V3_ENVIRONMENTS[task]()
+        for k, j in enumerate(info["episode_variation_index"]):
+            rows = episodes[first + k]
+            env.set_task(bench.train_tasks[j])
+            obs, _ = env.reset()
+            np.testing.assert_allclose(arrays["observation"][rows[0]], obs.astype(np.float32))
+            successes = []
+            for r in rows:
+                obs, reward, _, _, step_info = env.step(arrays["action"][r])
+                np.testing.assert_allclose(arrays[("next", "observation")][r], obs.astype(np.float32), atol=1e-6)
+                assert arrays[("next", "reward")][r, 0] == pytest.approx(reward, rel=1e-6)
+                successes.append(step_info["success"])
+            assert successes[-1] == 1.0 and not any(successes[:-1])
+        env.close()
+        first += len(info["episode_variation_index"])
+
+
+def test_actions_are_clipped_raw_actions(arrays):
+    raw, act = arrays["action_raw"], arrays["action"]
+    assert raw.dtype == act.dtype == np.float32 and act.shape[1:] == (4,)
+    expected = np.minimum(np.maximum(raw, -1.0), 1.0)
+    np.testing.assert_array_equal(act, expected)
+    assert np.abs(act).max() <= 1.0
+    assert np.abs(raw).max() > 1.0, "these experts emit actions beyond [-1, 1]: clipping must have mattered"
+    assert arrays["observation"].dtype == np.float32 and arrays["observation"].shape[1:] == (39,)
+
+
+def test_action_chunks_by_loop(arrays):
+    act, chunk, valid, ep = arrays["action"], arrays["action_chunk"], arrays["action_chunk_valid"], arrays["episode"]
+    n = len(act)
+    assert chunk.shape == (n, H, 4) and valid.shape == (n, H) and valid.dtype == bool
+    for t in range(n):
+        last_real = t
+        for k in range(H):
+            u = t + k
+            if u < n and ep[u] == ep[t]:
+                assert valid[t, k]
+                np.testing.assert_array_equal(chunk[t, k], act[u])
+                last_real = u
+            else:
+                assert not valid[t, k]
+                np.testing.assert_array_equal(chunk[t, k], act[last_real])
+
+
+def test_task_ids(arrays, built):
+    _, ds = built
+    alphabetical = sorted(ALL_V3_ENVIRONMENTS)  # MetaWorld's own list, sorted
+    expected = {alphabetical.index(t) for t in TASKS}
+    assert set(np.unique(arrays["task_id"]).tolist()) == expected
+    assert arrays["task_id"].dtype == np.int64 and arrays["episode"].dtype == np.int64
+    # episodes are numbered in task-id order: the lower id comes first in storage
+    assert np.all(np.diff(arrays["task_id"]) >= 0)
+    assert ds.metadata["task_ids"] == {t: alphabetical.index(t) for t in TASKS}
+
+
+def test_metadata(built, arrays):
+    root, ds = built
+    m = json.loads((ds.path / "metadata.json").read_text())
+    assert m == ds.metadata
+    assert m["tasks"] == sorted(TASKS, key=sorted(ALL_V3_ENVIRONMENTS).index)
+    assert m["instructions"] == {t: tasks.INSTRUCTIONS[t] for t in TASKS}
+    assert m["seed"] == SEED and m["chunk_horizon"] == H and m["n_demos"] == N_DEMOS
+    assert m["max_attempts"] == 3 * N_DEMOS + 5
+    assert m["variation_seeds"] == [SEED]
+    episodes = _episodes(arrays)
+    lengths = [len(episodes[e]) for e in sorted(episodes)]
+    offset = 0
+    for task in m["tasks"]:
+        info = m["per_task"][task]
+        assert info["kept"] == N_DEMOS
+        assert info["attempts"] == info["kept"] + info["rejected"]
+        assert len(info["rejected_variation_index"]) == info["rejected"]
+        assert sorted(info["episode_variation_index"] + info["rejected_variation_index"]) == list(
+            range(info["attempts"])
+        )
+        assert info["episode_lengths"] == lengths[offset : offset + N_DEMOS]
+        assert info["steps"] == sum(info["episode_lengths"])
+        offset += N_DEMOS
+    assert m["total_episodes"] == N_DEMOS * len(TASKS)
+    assert m["total_steps"] == len(arrays["step"])
+    assert m["total_rejected"] == sum(m["per_task"][t]["rejected"] for t in TASKS)
+    assert m["action_target"] == "expert action clipped to the action space [-1, 1]; the unclipped action is action_raw"
+    assert set(m["versions"]) == {"tar_rl", "torch", "torchrl", "tensordict", "metaworld", "mujoco", "numpy"}
+    assert m["versions"]["metaworld"] == "3.1.1"
+    assert isinstance(m["format_version"], int)
+    assert ds.path.parent == root and ds.path.name.endswith(m["cache_key"])
+    for key, name in (("observation", "observation"), ("action", "action")):
+        x = arrays[key].astype(np.float64)
+        stats = m["stats"][name]
+        np.testing.assert_allclose(stats["mean"], x.mean(0), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(stats["std"], x.std(0), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(stats["min"], x.min(0))
+        np.testing.assert_allclose(stats["max"], x.max(0))
+        assert len(stats["mean"]) == x.shape[1]
+
+
+# -- Disk, cache and corruption -----------------------------------------------------------
+
+
+def test_round_trip_load(built, arrays):
+    _, ds = built
+    again = load_dataset(ds.path)
+    assert len(again) == len(ds)
+    td = again.data
+    assert set(td.keys(True, True)) == set(arrays)
+    for key, value in arrays.items():
+        np.testing.assert_array_equal(td.get(key).numpy(), value, err_msg=str(key))
+    assert again.metadata == ds.metadata
+
+
+def test_second_build_loads_without_collecting(built, monkeypatch):
+    root, ds = built
+
+    def boom(*args, **kwargs):
+        raise AssertionError("collect() must not run for a cached dataset")
+
+    monkeypatch.setattr(demos, "collect", boom)
+    again = build_dataset(root, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=2, progress=False)
+    assert again.path == ds.path and len(again) == len(ds)
+    # a different setting is a different folder (and would collect)
+    with pytest.raises(AssertionError, match="must not run"):
+        build_dataset(root, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H + 1, workers=2, progress=False)
+
+
+def _truncate_storage(path):
+    f = path / "buffer" / "storage" / "action.memmap"
+    f.write_bytes(f.read_bytes()[:10])
+
+
+def _remove_storage(path):
+    (path / "buffer" / "storage" / "next" / "observation.memmap").unlink()
+
+
+def _remove_metadata(path):
+    (path / "metadata.json").unlink()
+
+
+def _garble_metadata(path):
+    (path / "metadata.json").write_text('{"total_steps": ')
+
+
+def _wrong_length(path):
+    meta = json.loads((path / "metadata.json").read_text())
+    meta["total_steps"] += 1
+    (path / "metadata.json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize(
+    "corrupt", [_remove_metadata, _garble_metadata, _truncate_storage, _remove_storage, _wrong_length]
+)
+def test_corrupt_dataset_is_detected_and_rebuilt(built, arrays, tmp_path, capsys, corrupt):
+    _, ds = built
+    copy = tmp_path / ds.path.name
+    shutil.copytree(ds.path, copy)
+    corrupt(copy)
+    with pytest.raises(DatasetError):
+        load_dataset(copy)
+    capsys.readouterr()
+    rebuilt = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=0, progress=False)
+    assert "corrupt" in capsys.readouterr().out
+    assert rebuilt.path == copy
+    td = load_dataset(copy).data
+    for key, value in arrays.items():
+        np.testing.assert_array_equal(td.get(key).numpy(), value, err_msg=str(key))
+
+
+def test_leftover_temp_folder_is_removed(built, tmp_path, capsys):
+    _, ds = built
+    shutil.copytree(ds.path, tmp_path / ds.path.name)
+    dead = tmp_path / f".{ds.path.name}.tmp-999999999-deadbeef"  # no such pid
+    (dead / "buffer").mkdir(parents=True)
+    (dead / "buffer" / "junk").write_text("partial")
+    other = tmp_path / ".something-else.tmp-999999999-x"  # another dataset's: not ours to remove
+    other.mkdir()
+    again = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=0, progress=False)
+    assert again.path == tmp_path / ds.path.name
+    assert not dead.exists()
+    assert other.exists()
+    assert "leftover" in capsys.readouterr().out
+
+
+# -- Segments -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("slice_len", [16, 64])
+def test_segments(built, slice_len):
+    _, ds = built
+    torch.manual_seed(0)
+    batch_segments = 48
+    sampler = ds.segments(batch_segments, slice_len)
+    assert sampler.buffer.storage is ds.buffer.storage
+    lengths = {}
+    data = ds.data
+    for e in data["episode"].unique().tolist():
+        lengths[e] = int((data["episode"] == e).sum())
+    saw_padding = False
+    for _ in range(3):
+        batch = sampler.sample()
+        assert batch.batch_size == torch.Size([batch_segments, slice_len])
+        mask = batch["collector", "mask"]
+        assert mask.dtype == torch.bool and mask.shape == (batch_segments, slice_len)
+        for i in range(batch_segments):
+            m = mask[i]
+            n_valid = int(m.sum())
+            assert n_valid >= 1
+            assert m[:n_valid].all() and not m[n_valid:].any(), "padding only at the end"
+            ep = batch["episode"][i]
+            step = batch["step"][i]
+            assert (ep[:n_valid] == ep[0]).all()
+            assert torch.equal(step[:n_valid], step[0] + torch.arange(n_valid))
+            if n_valid < slice_len:
+                saw_padding = True
+                # cut at the episode's end: the last valid step is the episode's last
+                assert int(step[n_valid - 1]) == lengths[int(ep[0])] - 1
+                assert bool(batch["next", "terminated"][i, n_valid - 1])
+    shortest = min(lengths.values())
+    assert saw_padding == (shortest < slice_len)
+
+
+def test_segments_feed_tar_loss(built):
+    _, ds = built
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(39, 32), torch.nn.ReLU(), torch.nn.Linear(32, 4))
+    actor = TensorDictModule(net, ["observation"], ["action"])
+    loss = TARLoss(BCLoss(actor, loss_function="mse", reduction="none"))
+    batch = ds.segments(8, 64).sample()
+    out = loss(batch)
+    assert torch.isfinite(out["loss_tar"]) and out["loss_tar"] > 0
+    out["loss_tar"].backward()
+
+
+def test_segments_bad_arguments(built):
+    _, ds = built
+    with pytest.raises(ValueError, match="slice_len"):
+        ds.segments(4, 0)
+    with pytest.raises(ValueError, match="batch_segments"):
+        ds.segments(0, 4)
+
+
+# -- Seeds, names, failures ---------------------------------------------------------------
+
+
+def test_check_disjoint(built):
+    _, ds = built
+    with pytest.raises(ValueError, match="also used for demonstrations"):
+        ds.check_disjoint(SEED, 10)
+    with pytest.raises(ValueError, match="also used for demonstrations"):
+        ds.check_disjoint(SEED, 60)  # 60 rollouts use seeds {SEED, SEED + 1}
+    ds.check_disjoint(SEED + 1, 50)  # seeds {SEED + 1}: disjoint
+    ds.check_disjoint(1000, 200)
+
+
+def test_unknown_task_lists_names(tmp_path, monkeypatch):
+    def boom(*args, **kwargs):
+        raise AssertionError("no collection for bad input")
+
+    monkeypatch.setattr(demos, "collect", boom)
+    with pytest.raises(ValueError, match=r"not-a-task.*reach") as err:
+        build_dataset(tmp_path, ["reach", "not-a-task"], 2)
+    assert "button-press-topdown" in str(err.value)
+    with pytest.raises(ValueError, match="not-a-task"):
+        demos.collect_task("not-a-task", 1)
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"n_demos": 0}, "n_demos"),
+        ({"chunk_horizon": 0}, "chunk_horizon"),
+        ({"seed": -1}, "seed"),
+        ({"max_attempts": 1, "n_demos": 2}, "max_attempts"),
+    ],
+)
+def test_bad_arguments(tmp_path, monkeypatch, kwargs, match):
+    monkeypatch.setattr(demos, "collect", lambda *a, **k: pytest.fail("no collection for bad input"))
+    args = {"n_demos": 2, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        build_dataset(tmp_path, TASKS, **args)
+
+
+def test_expert_that_never_succeeds_raises_naming_task(monkeypatch, tmp_path):
+    monkeypatch.setattr(tasks, "expert", lambda task: _ZeroPolicy())
+    with pytest.raises(RuntimeError, match=r"reach-v3.*only 0 of 2 episodes"):
+        demos.collect_task("reach", 1, seed=SEED, max_attempts=2)
+    with pytest.raises(RuntimeError, match="reach-v3"):
+        build_dataset(tmp_path, ["reach"], 1, max_attempts=2, workers=0, progress=False)
+    assert not any(p.name.startswith("metaworld-demos-") for p in tmp_path.iterdir()), "nothing half-built left"
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
+
+
+def test_collect_in_process_summary(capsys):
+    out = demos.collect(["reach"], 1, seed=SEED, workers=0, progress=False)
+    assert list(out) == ["reach-v3"]
+    r = out["reach-v3"]
+    assert r.kept == 1 and r.steps == len(r.step) == int(r.lengths.sum())
+    assert r.terminated[-1] and r.terminated.sum() == 1
+    text = capsys.readouterr().out
+    assert "1 demonstrations kept" in text and f"{r.steps} steps" in text
+
+
+def test_workers_argument_is_checked():
+    with pytest.raises(ValueError, match="workers"):
+        demos.collect(["reach"], 1, workers=-1)
