@@ -278,7 +278,11 @@ def test_segments(built, slice_len):
     torch.manual_seed(0)
     batch_segments = 48
     sampler = ds.segments(batch_segments, slice_len)
-    assert sampler.buffer.storage is ds.buffer.storage
+    # zero copy: the sampler reads the dataset's memory maps
+    assert (
+        sampler.buffer.storage._storage["observation"].data_ptr()
+        == ds.buffer.storage._storage["observation"].data_ptr()
+    )
     lengths = {}
     data = ds.data
     for e in data["episode"].unique().tolist():
@@ -317,6 +321,21 @@ def test_segments_feed_tar_loss(built):
     out = loss(batch)
     assert torch.isfinite(out["loss_tar"]) and out["loss_tar"] > 0
     out["loss_tar"].backward()
+
+
+def test_segments_key_subset(built):
+    _, ds = built
+    batch = ds.segments(4, 8, keys=["observation", ("next", "done")]).sample()
+    assert set(batch.keys(True, True)) == {"observation", ("next", "done"), "episode", "index", ("collector", "mask")}
+    with pytest.raises(KeyError, match="not_there"):
+        ds.segments(4, 8, keys=["not_there"])
+
+
+def test_segments_generator_reproducible(built):
+    _, ds = built
+    a = ds.segments(8, 16, generator=torch.Generator().manual_seed(3)).sample()
+    b = ds.segments(8, 16, generator=torch.Generator().manual_seed(3)).sample()
+    assert torch.equal(a["step"], b["step"]) and torch.equal(a["episode"], b["episode"])
 
 
 def test_segments_bad_arguments(built):
