@@ -93,17 +93,33 @@ def test_zero_action_fails_on_reach_with_full_budget():
     assert (df["failure"] == "").all()
 
 
+def reset_goal(task, k):
+    env = tasks.make_env(task)
+    env.set_task(tasks.variation(task, 1000, k))
+    obs, _ = env.reset()
+    return obs[36:39].astype(np.float32)  # the goal is visible in the observation
+
+
 def test_policy_reads_task_id_per_env_and_variations_differ():
     policy = ConstPolicy(0.0)
-    evaluate(policy, ["reach", "drawer-close"], rollouts_per_task=3, horizon=5, workers=1, progress=False)
-    expected = [tasks.TASKS.index("drawer-close-v3")] * 3 + [tasks.TASKS.index("reach-v3")] * 3
-    assert policy.task_ids[0] == expected
-    assert all(ids == expected for ids in policy.task_ids)
-    goals = policy.first_obs[0][:, 36:39]  # the goal is visible in the observation
-    for a in range(3):
-        for b in range(a + 1, 3):
-            assert not np.allclose(goals[a], goals[b])  # drawer-close rollouts: distinct variations
-            assert not np.allclose(goals[3 + a], goals[3 + b])  # reach rollouts
+    names = ["reach-v3", "drawer-close-v3"]
+    evaluate(policy, names, rollouts_per_task=3, horizon=5, workers=1, progress=False)
+    ids = policy.task_ids[0]
+    assert all(step_ids == ids for step_ids in policy.task_ids)  # constant over the rollout
+    assert sorted(ids) == sorted([tasks.TASKS.index(n) for n in names] * 3)
+    goals = {n: [reset_goal(n, k) for k in range(3)] for n in names}
+    for n in names:
+        for a in range(3):
+            for b in range(a + 1, 3):
+                assert not np.allclose(goals[n][a], goals[n][b])  # distinct variations
+    seen = {n: [] for n in names}
+    for row, task_id in enumerate(ids):
+        task = tasks.TASKS[task_id]
+        goal = policy.first_obs[0][row, 36:39]
+        matches = [k for k in range(3) if np.array_equal(goal, goals[task][k])]
+        assert len(matches) == 1, f"row {row} has task_id {task_id} but not one of {task}'s goals"
+        seen[task].extend(matches)
+    assert {n: sorted(v) for n, v in seen.items()} == {n: [0, 1, 2] for n in names}
 
 
 def test_wrong_action_shape_names_task_and_step():
