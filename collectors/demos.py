@@ -64,6 +64,7 @@ class TaskDemos:
         attempts: episodes rolled out (kept + rejected).
         rejected: failed episodes (no success within the horizon), discarded.
         rejected_index: the ``j`` of the rejected episodes.
+        env_steps: environment steps taken, rejected episodes included.
         seconds: wall time of the collection in the worker.
     """
 
@@ -83,6 +84,7 @@ class TaskDemos:
     attempts: int
     rejected: int
     rejected_index: list[int] = field(default_factory=list)
+    env_steps: int = 0
     seconds: float = 0.0
 
     @property
@@ -177,9 +179,11 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
     kept_index: list[int] = []
     rejected_index: list[int] = []
     j = 0
+    env_steps = 0
     while len(kept_index) < n_demos and j < max_attempts:
         env.set_task(_tasks.variation(task, seed, j))
         length, ok = _rollout(env, policy, buf)
+        env_steps += length
         if ok:
             episodes.append(
                 (
@@ -223,14 +227,20 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
         attempts=j,
         rejected=len(rejected_index),
         rejected_index=rejected_index,
+        env_steps=env_steps,
         seconds=time.perf_counter() - start,
     )
 
 
 def _worker_init() -> None:
+    import warnings
+
     import torch
 
     torch.set_num_threads(1)
+    # MetaWorld's experts warn on every unclipped action; the actions are clipped here, so the
+    # warning is noise (spawned workers do not inherit the parent's warning filters).
+    warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
 
 
 def _job(args: tuple[str, int, int, int | None]) -> TaskDemos:

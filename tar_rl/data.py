@@ -190,6 +190,7 @@ def _metadata(settings: dict, key: str, results: dict[str, _demos.TaskDemos], da
             "rejected": r.rejected,
             "attempts": r.attempts,
             "steps": r.steps,
+            "env_steps": r.env_steps,
             "variation_seeds": list(_tasks.variation_seeds(seed, r.attempts)),
             "episode_variation_index": r.variation_index.tolist(),
             "episode_variation_seed": r.variation_seed.tolist(),
@@ -325,7 +326,10 @@ def build_dataset(
 
     if final.exists():
         try:
-            return load_dataset(final)
+            found = load_dataset(final)
+            if found.metadata.get("cache_key") != key or found.metadata.get("settings") != settings:
+                raise DatasetError(f"its metadata describes other settings ({found.metadata.get('settings')})")
+            return found
         except DatasetError as err:
             msg = f"dataset {final} is incomplete or corrupt ({err}); removing it and building it again"
             logger.warning(msg)

@@ -229,6 +229,12 @@ def _garble_metadata(path):
     (path / "metadata.json").write_text('{"total_steps": ')
 
 
+def _other_settings(path):
+    meta = json.loads((path / "metadata.json").read_text())
+    meta["settings"]["n_demos"] += 1
+    (path / "metadata.json").write_text(json.dumps(meta))
+
+
 def _wrong_length(path):
     meta = json.loads((path / "metadata.json").read_text())
     meta["total_steps"] += 1
@@ -236,15 +242,17 @@ def _wrong_length(path):
 
 
 @pytest.mark.parametrize(
-    "corrupt", [_remove_metadata, _garble_metadata, _truncate_storage, _remove_storage, _wrong_length]
+    "corrupt",
+    [_remove_metadata, _garble_metadata, _truncate_storage, _remove_storage, _wrong_length, _other_settings],
 )
 def test_corrupt_dataset_is_detected_and_rebuilt(built, arrays, tmp_path, capsys, corrupt):
     _, ds = built
     copy = tmp_path / ds.path.name
     shutil.copytree(ds.path, copy)
     corrupt(copy)
-    with pytest.raises(DatasetError):
-        load_dataset(copy)
+    if corrupt is not _other_settings:  # readable, but not what its folder name promises
+        with pytest.raises(DatasetError):
+            load_dataset(copy)
     capsys.readouterr()
     rebuilt = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=0, progress=False)
     assert "corrupt" in capsys.readouterr().out
@@ -403,6 +411,7 @@ def test_collect_in_process_summary(capsys):
     assert list(out) == ["reach-v3"]
     r = out["reach-v3"]
     assert r.kept == 1 and r.steps == len(r.step) == int(r.lengths.sum())
+    assert r.env_steps == r.steps + 500 * r.rejected
     assert r.terminated[-1] and r.terminated.sum() == 1
     text = capsys.readouterr().out
     assert "1 demonstrations kept" in text and f"{r.steps} steps" in text

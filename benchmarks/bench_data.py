@@ -1,0 +1,337 @@
+"""Speed of demonstration collection and of segment sampling, as ratios measured in one run.
+
+Run from the repository root::
+
+    .venv/bin/python benchmarks/bench_data.py [--quick] [--tasks mt10] [--demos 10] [--workers N] [--out PATH]
+
+Sections:
+
+* ``collect_per_step`` (one process, one thread): ``collect_task`` vs a bare expert rollout loop
+  (``set_task``, ``reset``, ``step(clip(expert(obs)))`` until the first success or the horizon,
+  nothing recorded) on the same tasks and variations, with the MT1 variations already built.
+  Throughput in environment steps/s (rejected episodes included); the ratio isolates the cost
+  of recording. Variants alternate per task in a random order, ``--reps`` times.
+* ``collect_end_to_end``: ``demos.collect(tasks, workers=W)`` vs the same bare loop sharded over
+  a ``spawn`` pool of ``W`` processes (one task per job, workers importing only MetaWorld), both
+  timed from the call to the last result: process start, imports, MT1 construction included.
+* ``segments``: drawing one ``[256, 16]`` batch from a dataset's ``segments()`` sampler (all
+  entries, and the entries a BC step reads) vs one training step (forward, backward, AdamW) of
+  a 3 x 256 ReLU MLP (observation + one-hot task -> action) with ``TARLoss(BCLoss)`` on a fixed
+  batch. Round-robin, medians.
+
+Output: a table on stdout and one tidy CSV (default ``benchmarks/results/data.csv``, written to a
+temporary file and renamed into place) with columns ``section, variant, median, iqr, unit,
+ratio_to_baseline, baseline, n, workers, tasks, torch, commit``. Targets from the issue:
+collection throughput >= 0.85 of the bare rollout rate; a segment batch <= 5% of a train step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import random
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_OUT = REPO / "benchmarks" / "results" / "data.csv"
+COLUMNS = [
+    "section",
+    "variant",
+    "median",
+    "iqr",
+    "unit",
+    "ratio_to_baseline",
+    "baseline",
+    "n",
+    "workers",
+    "tasks",
+    "torch",
+    "commit",
+]
+HORIZON = 500
+BATCH, SLICE_LEN, HIDDEN, N_TASKS = 256, 16, 256, 50
+TRAIN_KEYS = ["observation", "action", "task_id", ("collector", "mask")]
+
+
+# -- Bare rollouts (kept free of tar_rl imports so that pool workers only load MetaWorld) ----------
+
+
+def _variation(task: str, seed: int, j: int, cache: dict):
+    import metaworld
+
+    s = seed + j // 50
+    if (task, s) not in cache:
+        cache[(task, s)] = metaworld.MT1(task, seed=s)
+    return cache[(task, s)].train_tasks[j % 50]
+
+
+def bare_rollouts(task: str, n_demos: int, seed: int, max_attempts: int, cache: dict | None = None) -> int:
+    """Expert episodes until ``n_demos`` succeed (or ``max_attempts``); returns env steps taken."""
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+    from metaworld.policies import ENV_POLICY_MAP
+
+    warnings.filterwarnings("ignore", message="Constant")
+    cache = {} if cache is None else cache
+    env = ALL_V3_ENVIRONMENTS[task]()
+    policy = ENV_POLICY_MAP[task]()
+    steps = kept = j = 0
+    while kept < n_demos and j < max_attempts:
+        env.set_task(_variation(task, seed, j, cache))
+        obs, _ = env.reset()
+        for _ in range(HORIZON):
+            obs, _, _, truncated, info = env.step(np.clip(policy.get_action(obs), -1.0, 1.0))
+            steps += 1
+            if info["success"]:
+                kept += 1
+                break
+            if truncated:
+                break
+        j += 1
+    env.close()
+    return steps
+
+
+def _bare_job(args) -> int:
+    return bare_rollouts(*args)
+
+
+# -- Helpers ---------------------------------------------------------------------------------------
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _median_iqr(xs) -> tuple[float, float]:
+    xs = np.asarray(xs, dtype=np.float64)
+    q1, q2, q3 = np.percentile(xs, [25, 50, 75])
+    return float(q2), float(q3 - q1)
+
+
+def _write_csv_atomic(df, out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    os.close(fd)
+    try:
+        df.to_csv(tmp, index=False)
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+# -- Sections --------------------------------------------------------------------------------------
+
+
+def bench_collect_per_step(names, n_demos, seed, reps) -> list[dict]:
+    from tar_rl.collectors import demos, tasks
+
+    max_attempts = demos.default_max_attempts(n_demos)
+    cache: dict = {}
+    for task in names:  # build every MT1 once, outside the timings
+        for j in range(max_attempts):
+            tasks.variation(task, seed, j)
+            _variation(task, seed, j, cache)
+    times = {"bare": [], "collect": []}
+    steps = {"bare": 0, "collect": 0}
+    rng = random.Random(0)
+    for _ in range(reps):
+        for task in names:
+            order = ["bare", "collect"]
+            rng.shuffle(order)
+            for variant in order:
+                t0 = time.perf_counter()
+                if variant == "bare":
+                    n = bare_rollouts(task, n_demos, seed, max_attempts, cache)
+                else:
+                    n = demos.collect_task(task, n_demos, seed, max_attempts).env_steps
+                times[variant].append(time.perf_counter() - t0)
+                steps[variant] += n
+    rates = {v: steps[v] / sum(times[v]) for v in times}
+    # per-rep rates: total steps over total time within each repetition
+    per_rep = {v: [] for v in times}
+    k = len(names)
+    for v in times:
+        steps_per_rep = steps[v] / reps  # deterministic: every repetition takes the same steps
+        for r in range(reps):
+            per_rep[v].append(steps_per_rep / sum(times[v][r * k : (r + 1) * k]))
+    rows = []
+    for v in ("bare", "collect"):
+        _, iqr = _median_iqr(per_rep[v])
+        rows.append(
+            {
+                "section": "collect_per_step",
+                "variant": v,
+                "median": rates[v],
+                "iqr": iqr,
+                "unit": "env_steps/s",
+                "ratio_to_baseline": rates[v] / rates["bare"],
+                "baseline": "bare",
+                "n": reps,
+                "workers": 1,
+            }
+        )
+    return rows
+
+
+def bench_collect_end_to_end(names, n_demos, seed, workers) -> list[dict]:
+    from tar_rl.collectors import demos
+
+    max_attempts = demos.default_max_attempts(n_demos)
+    w = max(1, min(workers, len(names)))
+    t0 = time.perf_counter()
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(w) as pool:
+        bare_steps = sum(pool.map(_bare_job, [(t, n_demos, seed, max_attempts) for t in names], chunksize=1))
+    bare_time = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    results = demos.collect(names, n_demos, seed=seed, workers=w, max_attempts=max_attempts, progress=False)
+    collect_time = time.perf_counter() - t0
+    collect_steps = sum(r.env_steps for r in results.values())
+    if collect_steps != bare_steps:
+        print(f"warning: collect took {collect_steps} env steps, the bare loop {bare_steps}", file=sys.stderr)
+    bare_rate, collect_rate = bare_steps / bare_time, collect_steps / collect_time
+    return [
+        {
+            "section": "collect_end_to_end",
+            "variant": v,
+            "median": rate,
+            "iqr": float("nan"),
+            "unit": "env_steps/s",
+            "ratio_to_baseline": rate / bare_rate,
+            "baseline": "bare_pool",
+            "n": 1,
+            "workers": w,
+        }
+        for v, rate in (("bare_pool", bare_rate), ("collect", collect_rate))
+    ]
+
+
+def bench_segments(names, n_demos, seed, workers, reps, root) -> list[dict]:
+    import torch
+    from tensordict import TensorDict
+    from tensordict.nn import TensorDictModule
+    from torchrl.objectives import BCLoss
+
+    from tar_rl import TARLoss
+    from tar_rl.data import build_dataset
+
+    ds = build_dataset(root, names, n_demos, seed=seed, workers=workers, progress=False, verbose=False)
+    torch.manual_seed(0)
+    samplers = {
+        "sample_all_keys": ds.segments(BATCH, SLICE_LEN),
+        "sample_train_keys": ds.segments(BATCH, SLICE_LEN, keys=[k for k in TRAIN_KEYS if k[0] != "collector"]),
+    }
+
+    class Policy(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            layers, d = [], 39 + N_TASKS
+            for _ in range(3):
+                layers += [torch.nn.Linear(d, HIDDEN), torch.nn.ReLU()]
+                d = HIDDEN
+            self.net = torch.nn.Sequential(*layers, torch.nn.Linear(d, 4))
+
+        def forward(self, obs, task_id):
+            return self.net(torch.cat([obs, torch.nn.functional.one_hot(task_id, N_TASKS).to(obs.dtype)], -1))
+
+    actor = TensorDictModule(Policy(), ["observation", "task_id"], ["action"])
+    loss = TARLoss(BCLoss(actor, loss_function="mse", reduction="none"))
+    opt = torch.optim.AdamW(loss.parameters(), lr=3e-4)
+    fixed = samplers["sample_train_keys"].sample()
+    fixed = TensorDict({k: fixed.get(k).clone() for k in TRAIN_KEYS}, fixed.batch_size)
+
+    def train_step():
+        out = loss(fixed)
+        out["loss_tar"].backward()
+        opt.step()
+        opt.zero_grad()
+
+    variants = {"train_step": train_step, **{k: s.sample for k, s in samplers.items()}}
+    for fn in variants.values():  # warm-up
+        for _ in range(3):
+            fn()
+    times = {k: [] for k in variants}
+    rng = random.Random(0)
+    for _ in range(reps):
+        order = list(variants)
+        rng.shuffle(order)
+        for k in order:
+            t0 = time.perf_counter()
+            variants[k]()
+            times[k].append((time.perf_counter() - t0) * 1e3)
+    base, _ = _median_iqr(times["train_step"])
+    rows = []
+    for k, ts in times.items():
+        med, iqr = _median_iqr(ts)
+        rows.append(
+            {
+                "section": "segments",
+                "variant": k,
+                "median": med,
+                "iqr": iqr,
+                "unit": "ms",
+                "ratio_to_baseline": med / base,
+                "baseline": "train_step",
+                "n": reps,
+                "workers": 1,
+            }
+        )
+    return rows
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tasks", default="mt10")
+    parser.add_argument("--demos", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--reps", type=int, default=3, help="repetitions of collect_per_step")
+    parser.add_argument("--sample-reps", type=int, default=200, help="repetitions of the segments section")
+    parser.add_argument("--quick", action="store_true", help="2 tasks x 2 demos, few repetitions (smoke test)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+
+    import pandas as pd
+    import torch
+
+    from tar_rl.collectors import tasks
+
+    torch.set_num_threads(1)
+    warnings.filterwarnings("ignore", message="Constant")
+    warnings.filterwarnings("ignore", message="The name target_actor_network_params")  # torchrl's BCLoss
+    if args.quick:
+        args.tasks, args.demos, args.reps, args.sample_reps = "reach,button-press-topdown", 2, 1, 20
+    names = tasks.resolve_tasks(args.tasks)
+
+    rows = bench_collect_per_step(names, args.demos, args.seed, args.reps)
+    rows += bench_collect_end_to_end(names, args.demos, args.seed, args.workers)
+    with tempfile.TemporaryDirectory(prefix="bench_data_") as root:
+        rows += bench_segments(names, args.demos, args.seed, args.workers, args.sample_reps, root)
+    df = pd.DataFrame(rows)
+    df["tasks"] = args.tasks
+    df["torch"] = torch.__version__
+    df["commit"] = _commit()
+    df = df[COLUMNS]
+    with pd.option_context("display.width", 200, "display.max_columns", 20):
+        print(df.drop(columns=["torch", "commit", "tasks"]).to_string(index=False))
+    _write_csv_atomic(df, args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
