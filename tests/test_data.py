@@ -420,3 +420,22 @@ def test_collect_in_process_summary(capsys):
 def test_workers_argument_is_checked():
     with pytest.raises(ValueError, match="workers"):
         demos.collect(["reach"], 1, workers=-1)
+
+
+@pytest.mark.slow
+def test_bench_data_quick_writes_csv(tmp_path, monkeypatch):
+    import importlib
+    from pathlib import Path
+
+    import pandas as pd
+
+    # importable by name: the benchmark's spawned pool workers import it to find their job
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    bench = importlib.import_module("bench_data")
+    out = tmp_path / "data.csv"
+    bench.main(["--quick", "--workers", "2", "--out", str(out)])
+    df = pd.read_csv(out)
+    assert list(df.columns) == bench.COLUMNS
+    assert set(df.section) == {"collect_per_step", "collect_end_to_end", "segments"}
+    assert (df["median"] > 0).all() and (df["ratio_to_baseline"] > 0).all()
+    assert not list(tmp_path.glob(".*")), "no temporary file left beside the CSV"
