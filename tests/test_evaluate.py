@@ -103,8 +103,8 @@ def reset_goal(task, k):
 def test_policy_reads_task_id_per_env_and_variations_differ():
     policy = ConstPolicy(0.0)
     names = ["reach-v3", "drawer-close-v3"]
-    evaluate(policy, names, rollouts_per_task=3, horizon=5, workers=1, progress=False)
-    ids = policy.task_ids[0]
+    evaluate(policy, names, rollouts_per_task=3, horizon=5, workers=1, envs_per_worker=6, progress=False)
+    ids = policy.task_ids[0]  # one batch of the 6 rollouts
     assert all(step_ids == ids for step_ids in policy.task_ids)  # constant over the rollout
     assert sorted(ids) == sorted([tasks.TASKS.index(n) for n in names] * 3)
     goals = {n: [reset_goal(n, k) for k in range(3)] for n in names}
@@ -223,3 +223,36 @@ def test_make_metaworld_env_entries():
     assert nxt["reward"].dtype == torch.float64
     with pytest.raises(ValueError, match="nope"):
         make_metaworld_env("nope")
+
+
+def test_policy_training_mode_is_restored():
+    policy = ConstPolicy(0.0)
+    policy.train()
+    evaluate(policy, "reach", rollouts_per_task=1, horizon=2, workers=1, progress=False)
+    assert policy.training
+
+
+@pytest.mark.slow
+def test_bench_eval_quick_writes_csv(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_eval.py"
+    spec = importlib.util.spec_from_file_location("bench_eval", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "eval.csv"
+    bench.main(["--quick", "--sections", "one_process", "--out", str(out)])
+    df = pd.read_csv(out)
+    assert list(df.columns) == bench.COLUMNS
+    assert list(df["rep"].astype(str)) == ["0", "median"]
+    assert (df["ratio"] > 0).all() and (df["raw_steps_per_s"] > 0).all()
+
+
+@pytest.mark.parametrize(
+    ("rollouts", "horizon", "expected"),
+    [(2500, 500, 32), (50, 500, 12), (100, 500, 17), (3, 500, 3), (10, 20, 4)],
+)
+def test_default_envs_per_worker(rollouts, horizon, expected):
+    # sqrt(rollouts * horizon * 0.8e-3 / 0.14), within 4..32 and at most the rollouts: 50 * 500 -> 11.95
+    assert ev.default_envs_per_worker(rollouts, horizon) == expected
