@@ -187,38 +187,50 @@ def bench_collect_per_step(names, n_demos, seed, reps) -> list[dict]:
     return rows
 
 
-def bench_collect_end_to_end(names, n_demos, seed, workers) -> list[dict]:
+def bench_collect_end_to_end(names, n_demos, seed, workers, reps) -> list[dict]:
     from tar_rl.collectors import demos
 
     max_attempts = demos.default_max_attempts(n_demos)
     w = max(1, min(workers, len(names)))
-    t0 = time.perf_counter()
     ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(w) as pool:
-        bare_steps = sum(pool.map(_bare_job, [(t, n_demos, seed, max_attempts) for t in names], chunksize=1))
-    bare_time = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    results = demos.collect(names, n_demos, seed=seed, workers=w, max_attempts=max_attempts, progress=False)
-    collect_time = time.perf_counter() - t0
-    collect_steps = sum(r.env_steps for r in results.values())
-    if collect_steps != bare_steps:
-        print(f"warning: collect took {collect_steps} env steps, the bare loop {bare_steps}", file=sys.stderr)
-    bare_rate, collect_rate = bare_steps / bare_time, collect_steps / collect_time
-    return [
-        {
-            "section": "collect_end_to_end",
-            "variant": v,
-            "median": rate,
-            "iqr": float("nan"),
-            "unit": "env_steps/s",
-            "ratio_to_baseline": rate / bare_rate,
-            "baseline": "bare_pool",
-            "n": 1,
-            "workers": w,
-        }
-        for v, rate in (("bare_pool", bare_rate), ("collect", collect_rate))
-    ]
+    def bare() -> int:
+        with ctx.Pool(w) as pool:
+            return sum(pool.map(_bare_job, [(t, n_demos, seed, max_attempts) for t in names], chunksize=1))
+
+    def collect() -> int:
+        out = demos.collect(names, n_demos, seed=seed, workers=w, max_attempts=max_attempts, progress=False)
+        return sum(r.env_steps for r in out.values())
+
+    variants = {"bare_pool": bare, "collect": collect}
+    rates: dict[str, list[float]] = {v: [] for v in variants}
+    steps: dict[str, set[int]] = {v: set() for v in variants}
+    for r in range(reps):
+        for v in variants if r % 2 == 0 else reversed(variants):
+            t0 = time.perf_counter()
+            n = variants[v]()
+            rates[v].append(n / (time.perf_counter() - t0))
+            steps[v].add(n)
+    if steps["bare_pool"] != steps["collect"]:
+        print(f"warning: env steps differ: {steps}", file=sys.stderr)
+    base, _ = _median_iqr(rates["bare_pool"])
+    rows = []
+    for v, rs in rates.items():
+        med, iqr = _median_iqr(rs)
+        rows.append(
+            {
+                "section": "collect_end_to_end",
+                "variant": v,
+                "median": med,
+                "iqr": iqr,
+                "unit": "env_steps/s",
+                "ratio_to_baseline": med / base,
+                "baseline": "bare_pool",
+                "n": reps,
+                "workers": w,
+            }
+        )
+    return rows
 
 
 def bench_segments(names, n_demos, seed, workers, reps, root) -> list[dict]:
@@ -301,6 +313,7 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--reps", type=int, default=3, help="repetitions of collect_per_step")
+    parser.add_argument("--e2e-reps", type=int, default=2, help="repetitions of collect_end_to_end (alternating)")
     parser.add_argument("--sample-reps", type=int, default=200, help="repetitions of the segments section")
     parser.add_argument("--quick", action="store_true", help="2 tasks x 2 demos, few repetitions (smoke test)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -315,11 +328,11 @@ def main(argv=None) -> None:
     warnings.filterwarnings("ignore", message="Constant")
     warnings.filterwarnings("ignore", message="The name target_actor_network_params")  # torchrl's BCLoss
     if args.quick:
-        args.tasks, args.demos, args.reps, args.sample_reps = "reach,button-press-topdown", 2, 1, 20
+        args.tasks, args.demos, args.reps, args.e2e_reps, args.sample_reps = "reach,button-press-topdown", 2, 1, 1, 20
     names = tasks.resolve_tasks(args.tasks)
 
     rows = bench_collect_per_step(names, args.demos, args.seed, args.reps)
-    rows += bench_collect_end_to_end(names, args.demos, args.seed, args.workers)
+    rows += bench_collect_end_to_end(names, args.demos, args.seed, args.workers, args.e2e_reps)
     with tempfile.TemporaryDirectory(prefix="bench_data_") as root:
         rows += bench_segments(names, args.demos, args.seed, args.workers, args.sample_reps, root)
     df = pd.DataFrame(rows)
