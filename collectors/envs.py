@@ -65,20 +65,32 @@ class MaskedVectorEnv(SyncVectorEnv):
     their last observation, reward 0 and no success. A sub-environment whose step raises, or which
     MetaWorld reports as numerically unstable (``_did_see_sim_exception``: it then freezes its
     observation and never succeeds), is terminated and its reason kept in ``failures[i]``; the others
-    go on. ``reset`` clears ``failures`` and sets every sub-environment active.
+    go on. ``reset`` clears ``failures`` and sets the sub-environments it resets active.
     """
 
-    def __init__(self, envs: Sequence):
+    def __init__(self, envs: Sequence, task_ids: Sequence[int] | None = None):
         envs = list(envs)
         if not envs:
             raise ValueError("MaskedVectorEnv needs at least one environment")
         super().__init__([_Const(e) for e in envs], copy=False, autoreset_mode=AutoresetMode.DISABLED)
         self.active = np.ones(self.num_envs, dtype=bool)
         self.failures = [""] * self.num_envs
+        #: The task id of each slot, read (cloned) by the ``task_id`` primer at every reset.
+        self.task_ids = torch.tensor(list(task_ids) if task_ids is not None else [0] * len(envs), dtype=torch.int64)
+
+    def replace(self, i: int, env, task_id: int) -> None:
+        """Put ``env`` (a bare MetaWorld env, already ``set_task``) in slot ``i``; reset that slot next."""
+        if env.observation_space != self.single_observation_space or env.action_space != self.single_action_space:
+            raise ValueError(f"slot {i}: the new env's spaces differ from the batch's")
+        self.envs[i] = env
+        self.task_ids[i] = task_id
 
     def reset(self, *, seed=None, options=None):
-        self.active = np.ones(self.num_envs, dtype=bool)
-        self.failures = [""] * self.num_envs
+        """Reset every sub-environment, or those in ``options["reset_mask"]`` (torchrl's partial ``_reset``)."""
+        mask = (options or {}).get("reset_mask")
+        for i in np.flatnonzero(np.ones(self.num_envs, dtype=bool) if mask is None else mask):
+            self.active[i] = True
+            self.failures[i] = ""
         obs, _ = super().reset(seed=seed, options=options)
         return obs.copy(), {}
 
@@ -154,13 +166,13 @@ def make_metaworld_env(task: str, variation=None) -> TransformedEnv:
 def make_batched_env(envs: Sequence, task_names: Sequence[str]) -> tuple[TransformedEnv, MaskedVectorEnv]:
     """A batch-[N] TorchRL env over bare MetaWorld envs (each already ``set_task``), one per entry of ``task_names``.
 
-    Returns the TorchRL env and its ``MaskedVectorEnv`` (set ``.active`` before a step; read ``.failures``).
+    Returns the TorchRL env and its ``MaskedVectorEnv`` (set ``.active`` before a step; read ``.failures``;
+    ``.replace(i, env, task_id)`` then ``reset`` with a ``_reset`` mask starts a new rollout in slot ``i``).
     """
     if len(envs) != len(task_names):
         raise ValueError(f"got {len(envs)} environments but {len(task_names)} task names")
-    vec = MaskedVectorEnv(envs)
+    vec = MaskedVectorEnv(envs, [tasks.task_index(t) for t in task_names])
     env = GymWrapper(vec)
     env.set_info_dict_reader(SuccessReader((len(envs),)))
     env.reward_spec = _reward_spec((len(envs),))
-    ids = torch.tensor([tasks.task_index(t) for t in task_names], dtype=torch.int64)
-    return TransformedEnv(env, _transforms(ids)), vec
+    return TransformedEnv(env, _transforms(vec.task_ids)), vec

@@ -24,12 +24,13 @@ non-finite actions is a bug in the policy: it raises, naming the task and step.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import math
 import os
 import tempfile
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
@@ -227,136 +228,139 @@ def _worker(policy, shard, seed, horizon, batch, queue) -> list[dict]:
 
 
 class _EnvPool:
-    """Bare MetaWorld envs of a worker, built once per task and reused across batches."""
+    """Bare MetaWorld envs of a worker, built once per task and reused by later rollouts of the task."""
 
-    def __init__(self):
-        self._envs: dict[str, list] = {}
+    def __init__(self, jobs):
+        self._free: dict[str, list] = {}
+        self._left = collections.Counter(task for task, _ in jobs)  # rollouts not yet started, per task
 
-    def take(self, names: Sequence[str]) -> list:
-        needed: dict[str, int] = {}
-        for name in names:
-            needed[name] = needed.get(name, 0) + 1
-        for name in list(self._envs):  # shards are interleaved: a task absent from a batch is finished
-            if name not in needed:
-                for env in self._envs.pop(name):
-                    env.close()
-        used: dict[str, int] = {}
-        out = []
-        for name in names:
-            envs = self._envs.setdefault(name, [])
-            i = used.get(name, 0)
-            if i == len(envs):
-                envs.append(tasks.make_env(name))
-            out.append(envs[i])
-            used[name] = i + 1
-        return out
+    def acquire(self, task: str):
+        self._left[task] -= 1
+        free = self._free.setdefault(task, [])
+        return free.pop() if free else tasks.make_env(task)
 
-    def discard(self, env) -> None:
-        """Forget an env whose step failed: its simulation state is not trusted for the next rollouts."""
-        for envs in self._envs.values():
-            if any(e is env for e in envs):
-                envs[:] = [e for e in envs if e is not env]
-                env.close()
+    def release(self, task: str, env) -> None:
+        if self._left[task] > 0:
+            self._free[task].append(env)
+        else:  # no rollout of this task left in the shard
+            env.close()
 
     def close(self) -> None:
-        for envs in self._envs.values():
+        for envs in self._free.values():
             for env in envs:
                 env.close()
-        self._envs.clear()
+        self._free.clear()
 
 
 def _run_shard(policy, shard, seed, horizon, batch, progress) -> list[dict]:
     was_training = policy.training
     policy.eval()
-    pool = _EnvPool()
-    rows = []
+    pool = _EnvPool(shard)
     try:
         with torch.no_grad():
-            for start in range(0, len(shard), batch):
-                jobs = shard[start : start + batch]
-                rows.extend(_run_batch(policy, jobs, seed, horizon, pool))
-                progress(len(jobs))
+            return _run_slots(policy, shard, seed, horizon, min(batch, len(shard)), pool, progress)
     finally:
         pool.close()
         policy.train(was_training)
-    return rows
 
 
-def _run_batch(policy, jobs, seed, horizon, pool: _EnvPool) -> list[dict]:
-    """Run the rollouts ``jobs`` ((task, k) pairs) side by side until each succeeds, fails or reaches ``horizon``."""
-    names = [task for task, _ in jobs]
-    bare = pool.take(names)
-    for env, (task, k) in zip(bare, jobs):
+def _row(task, k, seed, horizon, success, steps, total, failure) -> dict:
+    return {
+        "task": task,
+        "task_id": tasks.task_index(task),
+        "group": tasks.group_of(task),
+        "variation_seed": seed + k // tasks.VARIATIONS_PER_SEED,
+        "variation_index": k,
+        "success": bool(success),
+        "steps": int(steps),
+        "rho": float(steps) / horizon,
+        "return": float(total),
+        "failure": failure,
+    }
+
+
+def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> list[dict]:
+    """Run the rollouts ``shard`` ((task, k) pairs) on ``n`` batched env slots.
+
+    Each step, the policy is called once on the whole batch and the running slots are stepped.
+    A slot whose rollout ends (first success, failure, horizon) gets the shard's next rollout:
+    its env is swapped for one of the new task, ``set_task`` on the new variation, and reset
+    through torchrl's partial reset (a ``_reset`` mask), so the batch stays full until the shard
+    runs out instead of waiting for its slowest rollout.
+    """
+    pending = collections.deque(shard)
+    slot = [pending.popleft() for _ in range(n)]
+    bare = []
+    for task, k in slot:
+        env = pool.acquire(task)
         env.set_task(tasks.variation(task, seed, k))
-    env, vec = make_batched_env(bare, names)
-    n = len(jobs)
-    steps = np.full(n, horizon, dtype=np.int64)
+        bare.append(env)
+    env, vec = make_batched_env(bare, [task for task, _ in slot])
+    count = np.zeros(n, dtype=np.int64)
     returns = np.zeros(n, dtype=np.float64)
-    success = np.zeros(n, dtype=bool)
     running = np.ones(n, dtype=bool)
-    failure = [""] * n
+    rows = []
     td = env.reset()
-    for t in range(1, horizon + 1):
+    while running.any():
         td = policy(td)
-        action = td.get("action", None)
-        _check_action(action, names, running, t, n)
+        _check_action(td.get("action", None), slot, running, count + 1)
         vec.active = running.copy()
         nxt = env.step(td).get("next")
         reward = nxt.get("reward").reshape(n).numpy()
         hit = nxt.get("success").reshape(n).numpy()
         done = nxt.get("done").reshape(n).numpy()
+        count[running] += 1
         returns[running] += reward[running]
+        restart = np.zeros(n, dtype=bool)
         for i in np.flatnonzero(running):
-            if vec.failures[i]:
-                failure[i] = vec.failures[i]
+            failure = vec.failures[i]
+            # done: MetaWorld's own truncation, only at step 500 (the largest horizon)
+            if not (failure or hit[i] or done[i] or count[i] >= horizon):
+                continue
+            task, k = slot[i]
+            success = bool(hit[i]) and not failure
+            rows.append(_row(task, k, seed, horizon, success, count[i] if success else horizon, returns[i], failure))
+            progress(1)
+            if failure:  # its simulation state is not trusted for another rollout
+                vec.envs[i].close()
+            else:
+                pool.release(task, vec.envs[i])
+            if pending:
+                slot[i] = task, k = pending.popleft()
+                new = pool.acquire(task)
+                new.set_task(tasks.variation(task, seed, k))
+                vec.replace(i, new, tasks.task_index(task))
+                count[i], returns[i] = 0, 0.0
+                restart[i] = True
+            else:
                 running[i] = False
-            elif hit[i]:
-                success[i] = True
-                steps[i] = t
-                running[i] = False
-            elif done[i]:  # MetaWorld's own truncation (only at step 500 = the largest horizon)
-                running[i] = False
-        if not running.any():
-            break
-        td = nxt
-    for i in np.flatnonzero([bool(f) for f in failure]):
-        pool.discard(bare[i])
-    rows = []
-    for i, (task, k) in enumerate(jobs):
-        rows.append(
-            {
-                "task": task,
-                "task_id": tasks.task_index(task),
-                "group": tasks.group_of(task),
-                "variation_seed": seed + k // tasks.VARIATIONS_PER_SEED,
-                "variation_index": k,
-                "success": bool(success[i]),
-                "steps": int(steps[i]),
-                "rho": float(steps[i]) / horizon,
-                "return": float(returns[i]),
-                "failure": failure[i],
-            }
-        )
+        if restart.any():
+            nxt.set("_reset", torch.from_numpy(restart).unsqueeze(-1))
+            td = env.reset(nxt)
+        else:
+            td = nxt
     return rows
 
 
-def _check_action(action, names, running, t, n) -> None:
+def _check_action(action, slot, running, step) -> None:
+    n = len(slot)
     if not isinstance(action, torch.Tensor):
         raise RuntimeError(
-            f"the policy wrote no 'action' tensor at step {t} of tasks {sorted(set(names))} "
-            f"(got {type(action).__name__})"
+            f"the policy wrote no 'action' tensor (got {type(action).__name__}) at step {int(step.max())} "
+            f"of tasks {sorted({task for task, _ in slot})}"
         )
     if tuple(action.shape) != (n, ACTION_DIM):
         raise ValueError(
-            f"the policy returned actions of shape {tuple(action.shape)} at step {t} of tasks "
-            f"{sorted(set(names))}; expected ({n}, {ACTION_DIM}): one {ACTION_DIM}-d action per environment"
+            f"the policy returned actions of shape {tuple(action.shape)} at step {int(step[running].max())} of "
+            f"tasks {sorted({task for task, _ in slot})}; expected ({n}, {ACTION_DIM}): one {ACTION_DIM}-d action "
+            "per environment"
         )
     finite = torch.isfinite(action).all(-1).numpy()
     bad = np.flatnonzero(running & ~finite)
     if bad.size:
+        where = ", ".join(f"{slot[i][0]} (rollout {slot[i][1]}) at step {step[i]}" for i in bad[:5])
         raise ValueError(
-            f"the policy returned non-finite actions at step {t} for task(s) "
-            f"{sorted({names[i] for i in bad})}: {action[torch.as_tensor(bad[:3])].tolist()}"
+            f"the policy returned non-finite actions for {where}: {action[torch.as_tensor(bad[:3])].tolist()}"
         )
 
 

@@ -128,7 +128,7 @@ def test_wrong_action_shape_names_task_and_step():
 
 
 def test_nan_action_names_task_and_step():
-    with pytest.raises(ValueError, match=r"non-finite actions at step 3 for task\(s\) \['reach-v3'\]"):
+    with pytest.raises(ValueError, match=r"non-finite actions for reach-v3 \(rollout 0\) at step 3"):
         evaluate(ConstPolicy(0.0, nan_at_step=3), "reach", rollouts_per_task=2, horizon=10, workers=1, progress=False)
 
 
@@ -188,9 +188,18 @@ def test_env_error_and_instability_are_recorded_and_the_rest_continue(monkeypatc
     assert (df["steps"][2], df["return"][2], df["failure"][2]) == (steps, total, "")
 
 
-def test_batches_smaller_than_the_shard_give_the_same_rows(expert_rows):
+@pytest.mark.parametrize("envs_per_worker", [1, 2, 6])
+def test_slot_count_does_not_change_the_rows(expert_rows, envs_per_worker):
+    # With fewer slots than rollouts, finished slots get the next rollout (often of another task).
     df = evaluate(
-        ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=1, envs_per_worker=4, progress=False
+        ExpertPolicy(),
+        EASY,
+        rollouts_per_task=2,
+        seed=1000,
+        horizon=200,
+        workers=1,
+        envs_per_worker=envs_per_worker,
+        progress=False,
     )
     pd.testing.assert_frame_equal(df, expert_rows)
 
