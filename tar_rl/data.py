@@ -558,7 +558,10 @@ class DemoDataset:
 
     @property
     def data(self) -> TensorDict:
-        """All stored steps as one ``[N]`` TensorDict (read from the memory maps)."""
+        """All stored steps as one ``[N]`` TensorDict.
+
+        Its tensors are views of the on-disk memory maps: read them, clone before modifying.
+        """
         return self.buffer[:]
 
     @property
