@@ -235,9 +235,12 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
 def _worker_init() -> None:
     import warnings
 
-    import torch
-
-    torch.set_num_threads(1)
+    # One intra-op thread per worker. Collection itself never uses torch: the thread count is set
+    # where importing this module loaded torch (``tar_rl/__init__`` does), and a worker that
+    # does not need torch does not pay ~2 s to import it.
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
     # MetaWorld's experts warn on every unclipped action; the actions are clipped here, so the
     # warning is noise (spawned workers do not inherit the parent's warning filters).
     warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)

@@ -439,3 +439,10 @@ def test_bench_data_quick_writes_csv(tmp_path, monkeypatch):
     assert set(df.section) == {"collect_per_step", "collect_end_to_end", "segments"}
     assert (df["median"] > 0).all() and (df["ratio_to_baseline"] > 0).all()
     assert not list(tmp_path.glob(".*")), "no temporary file left beside the CSV"
+
+
+def test_worker_init_sets_one_torch_thread():
+    import multiprocessing
+
+    with multiprocessing.get_context("spawn").Pool(1, initializer=demos._worker_init) as pool:
+        assert pool.apply(torch.get_num_threads) == 1
