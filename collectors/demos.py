@@ -235,9 +235,9 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
 def _worker_init() -> None:
     import warnings
 
-    # One intra-op thread per worker. Collection itself never uses torch: the thread count is set
-    # where importing this module loaded torch (``tar_rl/__init__`` does), and a worker that
-    # does not need torch does not pay ~2 s to import it.
+    # One intra-op thread per worker. Collection itself never uses torch, so a worker does not
+    # import it (~2 s); if something loads it later, OMP_NUM_THREADS makes it start with one.
+    os.environ["OMP_NUM_THREADS"] = "1"
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)
