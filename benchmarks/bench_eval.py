@@ -14,7 +14,8 @@ Both sides run the same (task, rollout) pairs on the same variations (``tasks.va
   which builds its batched TorchRL envs, runs the policy once per batch step, etc.
 
 Two sections, each repeated ``--reps`` times with raw and eval alternating (interleaved) so that
-machine noise hits both alike:
+machine noise hits both alike, after ``--warmup`` untimed rounds (the first round pays one-off
+costs, e.g. building ``metaworld.MT1`` objects that later rounds in this process find cached):
 
 * ``one_process``: everything in this process (``workers=1``): the per-step overhead of the
   evaluator (TorchRL env, policy, bookkeeping, env construction) against the bare loop.
@@ -145,6 +146,7 @@ def main(argv=None) -> pd.DataFrame:
     parser.add_argument("--workers", type=int, default=None, help="processes in all_cores (default: all cores)")
     parser.add_argument("--envs-per-worker", type=int, default=None)
     parser.add_argument("--reps", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=1, help="untimed rounds per section first (file caches, imports)")
     parser.add_argument("--sections", default="one_process,all_cores")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 2 tasks, 2 rollouts, horizon 50, 1 rep")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "eval.csv")
@@ -166,6 +168,9 @@ def main(argv=None) -> pd.DataFrame:
         if section not in ("one_process", "all_cores"):
             raise ValueError(f"unknown section {section!r}: choose one_process and/or all_cores")
         w = 1 if section == "one_process" else workers
+        for _ in range(0 if args.quick else args.warmup):
+            run_raw(names, args.rollouts, args.horizon, w)
+            run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
         for rep in range(args.reps):
             raw = run_raw(names, args.rollouts, args.horizon, w)
             evl = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
