@@ -175,7 +175,7 @@ def evaluate(
     bounds = np.linspace(0, len(jobs), workers + 1).round().astype(int)
     shards = [_interleave(jobs[a:b]) for a, b in itertools.pairwise(bounds) if b > a]
 
-    from tqdm.auto import tqdm
+    from tqdm import tqdm
 
     bar = tqdm(total=len(jobs), desc="evaluate", unit="rollout", disable=not progress)
     rows: list[dict] = []

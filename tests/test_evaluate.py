@@ -265,3 +265,9 @@ def test_bench_eval_quick_writes_csv(tmp_path):
 def test_default_envs_per_worker(rollouts, horizon, expected):
     # sqrt(rollouts * horizon * 0.8e-3 / 0.14), within 4..32 and at most the rollouts: 50 * 500 -> 11.95
     assert ev.default_envs_per_worker(rollouts, horizon) == expected
+
+
+def test_progress_bar_counts_rollouts(capsys):
+    evaluate(ConstPolicy(0.0), "reach", rollouts_per_task=3, horizon=2, workers=1, envs_per_worker=2, progress=True)
+    err = capsys.readouterr().err
+    assert "evaluate" in err and "3/3" in err
