@@ -271,3 +271,9 @@ def test_progress_bar_counts_rollouts(capsys):
     evaluate(ConstPolicy(0.0), "reach", rollouts_per_task=3, horizon=2, workers=1, envs_per_worker=2, progress=True)
     err = capsys.readouterr().err
     assert "evaluate" in err and "3/3" in err
+
+
+@pytest.mark.slow
+def test_a_worker_error_reaches_the_caller():
+    with pytest.raises(ValueError, match=r"non-finite actions for drawer-close-v3 \(rollout 0\) at step 2"):
+        evaluate(ConstPolicy(0.0, nan_at_step=2), ["reach", "drawer-close"], 1, horizon=5, workers=2, progress=False)
