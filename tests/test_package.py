@@ -66,3 +66,16 @@ def test_readme_training_example_runs(tmp_path, monkeypatch):
     exec(compile(block.replace("range(1_000)", "range(5)"), "README.md", "exec"), scope)
     assert int(scope["loss"].schedule_step) == 5
     assert math.isfinite(scope["out"]["loss_tar"].item())
+
+
+@pytest.mark.slow
+def test_readme_metaworld_example_runs(tmp_path, monkeypatch):
+    """The README's MetaWorld block: a tiny dataset, a segment batch, an expert evaluation, the table."""
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    block = next(b.split("```")[0] for b in readme.split("```python\n")[1:] if "build_dataset" in b)
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(block, "README.md", "exec"), scope)
+    assert tuple(scope["batch"].shape) == (8, 16)
+    overall = scope["table"].set_index("level").loc["overall"]
+    assert overall["success"] == 100.0  # the scripted expert solves reach
