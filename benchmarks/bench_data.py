@@ -40,6 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tar_rl.io import write_csv_atomic
+
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "data.csv"
 COLUMNS = [
@@ -119,18 +121,6 @@ def _median_iqr(xs) -> tuple[float, float]:
     xs = np.asarray(xs, dtype=np.float64)
     q1, q2, q3 = np.percentile(xs, [25, 50, 75])
     return float(q2), float(q3 - q1)
-
-
-def _write_csv_atomic(df, out: Path) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.close(fd)
-    try:
-        df.to_csv(tmp, index=False)
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 # -- Sections --------------------------------------------------------------------------------------
@@ -342,7 +332,7 @@ def main(argv=None) -> None:
     df = df[COLUMNS]
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(df.drop(columns=["torch", "commit", "tasks"]).to_string(index=False))
-    _write_csv_atomic(df, args.out)
+    write_csv_atomic(df, args.out)
     print(f"wrote {args.out}")
 
 

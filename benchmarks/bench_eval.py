@@ -31,15 +31,15 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import os
 import sys
-import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from tar_rl.io import write_csv_atomic
 
 # Spawned workers import this module by name: keep its folder importable.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -125,19 +125,6 @@ def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker) -> floa
     return int(df["steps"].sum()) / (time.perf_counter() - start)
 
 
-def write_csv(df: pd.DataFrame, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".eval-", suffix=".csv.tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            df.to_csv(f, index=False)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-
-
 def main(argv=None) -> pd.DataFrame:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tasks", default=DEFAULT_TASKS)
@@ -206,7 +193,7 @@ def main(argv=None) -> pd.DataFrame:
             envs_per_worker=args.envs_per_worker or "default",
         )
     df = pd.DataFrame(rows, columns=COLUMNS)
-    write_csv(df, args.out)
+    write_csv_atomic(df, args.out)
     print(f"wrote {args.out}")
     return df
 

@@ -36,7 +36,6 @@ import math
 import os
 import subprocess
 import sys
-import tempfile
 import time
 import warnings
 from collections.abc import Callable
@@ -50,6 +49,7 @@ from tensordict.nn import TensorDictModule
 from torch import Tensor
 from torchrl.objectives import BCLoss
 
+from tar_rl.io import write_csv_atomic
 from tar_rl.objectives import TARLoss, tar_weights
 
 REPO = Path(__file__).resolve().parent.parent
@@ -342,20 +342,6 @@ def git_commit() -> str:
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return out.stdout.strip() or "unknown"
-
-
-def write_csv_atomic(df: pd.DataFrame, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            df.to_csv(f, index=False)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; give the result ordinary file permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _fmt(x: float, digits: int = 3) -> str:

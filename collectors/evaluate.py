@@ -30,7 +30,6 @@ import collections
 import itertools
 import math
 import os
-import tempfile
 import warnings
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
@@ -43,6 +42,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors import tasks
 from tar_rl.collectors.envs import make_batched_env
+from tar_rl.io import write_csv_atomic
 
 __all__ = ["COLUMNS", "MAX_HORIZON", "ExpertPolicy", "default_envs_per_worker", "evaluate", "write_rollouts"]
 
@@ -367,16 +367,5 @@ def _check_action(action, slot, running, step) -> None:
 
 
 def write_rollouts(df: pd.DataFrame, path: str | os.PathLike) -> None:
-    """Write the rollout table as CSV atomically: a temporary file in the same folder, then ``os.replace``."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".rollouts-", suffix=".csv.tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            df.to_csv(f, index=False)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    """Write the rollout table as CSV atomically (``tar_rl.io.write_csv_atomic``)."""
+    write_csv_atomic(df, path)

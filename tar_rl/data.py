@@ -44,7 +44,6 @@ import time
 import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -53,6 +52,7 @@ from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer
 
 from tar_rl.collectors import demos as _demos
 from tar_rl.collectors import tasks as _tasks
+from tar_rl.io import write_json_atomic
 
 __all__ = [
     "FORMAT_VERSION",
@@ -237,15 +237,6 @@ def _metadata(settings: dict, key: str, results: dict[str, _demos.TaskDemos], da
     }
 
 
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def _pid_alive(pid: int) -> bool:
     if pid == os.getpid():
         return False  # our own leftovers (from an earlier failed build in this process) are stale
@@ -352,7 +343,7 @@ def build_dataset(
         rb.extend(data)
         rb.dumps(buffer_dir)
         del rb, storage
-        _write_json_atomic(tmp / METADATA_FILE, _metadata(settings, key, results, data, secs))  # last: the marker
+        write_json_atomic(_metadata(settings, key, results, data, secs), tmp / METADATA_FILE)  # last: the marker
         try:
             os.rename(tmp, final)
         except OSError:

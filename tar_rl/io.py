@@ -1,0 +1,47 @@
+"""Atomic file writes: a temporary file in the target's folder, flushed to disk, then renamed.
+
+A crash at any point leaves either the previous file or the new one, never a partial file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = ["atomic_write", "write_csv_atomic", "write_json_atomic"]
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[IO[str]], object]) -> Path:
+    """Call ``write(f)`` on a text file that becomes ``path`` only once it is complete.
+
+    The folder is created if needed; the file gets ordinary permissions (0644, not mkstemp's 0600).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_csv_atomic(df, path: str | os.PathLike) -> Path:
+    """Write a pandas DataFrame as CSV (no index) atomically."""
+    return atomic_write(path, lambda f: df.to_csv(f, index=False))
+
+
+def write_json_atomic(obj: Any, path: str | os.PathLike) -> Path:
+    """Write ``obj`` as indented JSON atomically."""
+    return atomic_write(path, lambda f: json.dump(obj, f, indent=1))
