@@ -380,8 +380,9 @@ class TestBadInput:
 
 
 class TestCompile:
-    def test_fullgraph_matches_eager(self, segments):
-        eager, compiled_loss = make_loss(), make_loss()
+    @pytest.mark.parametrize("name", ["tar", "uniform"])
+    def test_fullgraph_matches_eager(self, segments, name):
+        eager, compiled_loss = make_loss(name), make_loss(name)
         compiled = torch.compile(compiled_loss, backend="aot_eager", fullgraph=True)
         for _ in range(2):
             a, b = eager(segments), compiled(segments)
