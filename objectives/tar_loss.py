@@ -222,7 +222,8 @@ class TARLoss(LossModule):
 
         if spec.perturb is not None:
             with torch.no_grad():
-                clean = self._step_losses(self.inner(tensordict), tensordict)
+                clean_out = self.inner(tensordict)
+                clean = self._step_losses(clean_out, self._loss_entry(clean_out), tensordict)
             chosen = perturb_mask(
                 clean, valid, fraction=self.perturb_fraction * mix, which=spec.perturb, generator=generator
             )
@@ -230,12 +231,13 @@ class TARLoss(LossModule):
             diagnostics["perturbed_fraction"] = chosen.sum() / valid.sum().clamp_min(1)
 
         out = self.inner(tensordict)
-        losses = self._step_losses(out, tensordict)
+        key = self._loss_entry(out)
+        losses = self._step_losses(out, key, tensordict)
         weights = spec.weights(losses, valid, self.tar_params, mix, generator)
         loss = segment_mean(losses, weights, valid)
-        for key, value in self._extra_losses(out).items():
+        for name, value in self._extra_losses(out, key).items():
             loss = loss + value
-            diagnostics[f"aux_{key}"] = value.detach()
+            diagnostics[f"aux_{name}"] = value.detach()
 
         with torch.no_grad():
             m = valid.to(weights.dtype)
@@ -290,8 +292,7 @@ class TARLoss(LossModule):
             )
         return names[0]
 
-    def _extra_losses(self, out: TensorDictBase) -> dict[str, Tensor]:
-        main = self._loss_entry(out)
+    def _extra_losses(self, out: TensorDictBase, main: NestedKey) -> dict[str, Tensor]:
         extra = {}
         for key in out.keys():
             if isinstance(key, str) and key.startswith("loss") and key != main:
@@ -304,9 +305,8 @@ class TARLoss(LossModule):
                 extra[key] = value
         return extra
 
-    def _step_losses(self, out: TensorDictBase, tensordict: TensorDictBase) -> Tensor:
-        """The inner per-step loss as ``[B, L]``: trailing event dims averaged away."""
-        key = self._loss_entry(out)
+    def _step_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> Tensor:
+        """The inner per-step loss at ``key`` as ``[B, L]``: trailing event dims averaged away."""
         loss = out.get(key)
         batch = tensordict.batch_size
         if loss.shape[: len(batch)] != batch:
