@@ -86,13 +86,25 @@ class MaskedVectorEnv(SyncVectorEnv):
         self.task_ids[i] = task_id
 
     def reset(self, *, seed=None, options=None):
-        """Reset every sub-environment, or those in ``options["reset_mask"]`` (torchrl's partial ``_reset``)."""
+        """Reset every sub-environment, or those in ``options["reset_mask"]`` (torchrl's partial ``_reset``).
+
+        A sub-environment whose reset raises keeps its previous observation (zeros if it has none),
+        gets the reason in ``failures[i]`` and is not stepped: its rollout ends as failed at the next
+        step. (Autoreset is disabled, so SyncVectorEnv's reset bookkeeping is not needed; MetaWorld
+        ignores reset seeds.)
+        """
         mask = (options or {}).get("reset_mask")
         for i in np.flatnonzero(np.ones(self.num_envs, dtype=bool) if mask is None else mask):
             self.active[i] = True
             self.failures[i] = ""
-        obs, _ = super().reset(seed=seed, options=options)
-        return obs.copy(), {}
+            try:
+                self._env_obs[i], _ = self.envs[i].reset()
+            except Exception as err:  # recorded per rollout; the other sub-environments go on
+                self.failures[i] = f"reset failed: {type(err).__name__}: {err}"
+                if self._env_obs[i] is None:
+                    space = self.single_observation_space
+                    self._env_obs[i] = np.zeros(space.shape, dtype=space.dtype)
+        return np.stack(self._env_obs), {}
 
     def step(self, actions):
         n = self.num_envs
@@ -102,6 +114,9 @@ class MaskedVectorEnv(SyncVectorEnv):
         success = np.zeros(n, dtype=np.float32)
         for i in np.flatnonzero(self.active):
             env = self.envs[i]
+            if self.failures[i]:  # its reset failed
+                terminated[i] = True
+                continue
             try:
                 obs, reward, term, trunc, info = env.step(actions[i])
             except Exception as err:  # recorded per rollout; the other sub-environments go on

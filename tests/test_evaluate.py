@@ -188,6 +188,35 @@ def test_env_error_and_instability_are_recorded_and_the_rest_continue(monkeypatc
     assert (df["steps"][2], df["return"][2], df["failure"][2]) == (steps, total, "")
 
 
+def test_reset_error_is_recorded_and_the_rest_continue(monkeypatch):
+    real = tasks.make_env
+    built = []
+
+    def patched(task):
+        env = real(task)
+        built.append(env)
+        if len(built) == 1:  # the first env built fails its first reset only
+            inner, calls = env.reset, [0]
+
+            def reset(**kwargs):
+                calls[0] += 1
+                if calls[0] == 1:
+                    raise RuntimeError("boom on reset")
+                return inner(**kwargs)
+
+            env.reset = reset
+        return env
+
+    monkeypatch.setattr(tasks, "make_env", patched)
+    df = evaluate(ExpertPolicy(), "reach", rollouts_per_task=3, horizon=150, workers=1, progress=False)
+    assert list(df["failure"]) == ["reset failed: RuntimeError: boom on reset", "", ""]
+    assert list(df["success"]) == [False, True, True]
+    assert df["steps"][0] == 150
+    for k in (1, 2):
+        _, steps, total = plain_expert_rollout("reach-v3", 1000, k, 150)
+        assert (df["steps"][k], df["return"][k]) == (steps, total)
+
+
 @pytest.mark.parametrize("envs_per_worker", [1, 2, 6])
 def test_slot_count_does_not_change_the_rows(expert_rows, envs_per_worker):
     # With fewer slots than rollouts, finished slots get the next rollout (often of another task).
