@@ -31,7 +31,6 @@ import argparse
 import multiprocessing
 import os
 import random
-import subprocess
 import sys
 import tempfile
 import time
@@ -41,6 +40,9 @@ from pathlib import Path
 import numpy as np
 
 from tar_rl.io import write_csv_atomic
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
+from common import git_commit, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "data.csv"
@@ -108,21 +110,6 @@ def _bare_job(args) -> int:
 # -- Helpers ---------------------------------------------------------------------------------------
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _median_iqr(xs) -> tuple[float, float]:
-    xs = np.asarray(xs, dtype=np.float64)
-    q1, q2, q3 = np.percentile(xs, [25, 50, 75])
-    return float(q2), float(q3 - q1)
-
-
 # -- Sections --------------------------------------------------------------------------------------
 
 
@@ -160,7 +147,7 @@ def bench_collect_per_step(names, n_demos, seed, reps) -> list[dict]:
             per_rep[v].append(steps_per_rep / sum(times[v][r * k : (r + 1) * k]))
     rows = []
     for v in ("bare", "collect"):
-        _, iqr = _median_iqr(per_rep[v])
+        _, iqr = median_iqr(per_rep[v])
         rows.append(
             {
                 "section": "collect_per_step",
@@ -203,10 +190,10 @@ def bench_collect_end_to_end(names, n_demos, seed, workers, reps) -> list[dict]:
             steps[v].add(n)
     if steps["bare_pool"] != steps["collect"]:
         print(f"warning: env steps differ: {steps}", file=sys.stderr)
-    base, _ = _median_iqr(rates["bare_pool"])
+    base, _ = median_iqr(rates["bare_pool"])
     rows = []
     for v, rs in rates.items():
-        med, iqr = _median_iqr(rs)
+        med, iqr = median_iqr(rs)
         rows.append(
             {
                 "section": "collect_end_to_end",
@@ -276,10 +263,10 @@ def bench_segments(names, n_demos, seed, workers, reps, root) -> list[dict]:
             t0 = time.perf_counter()
             variants[k]()
             times[k].append((time.perf_counter() - t0) * 1e3)
-    base, _ = _median_iqr(times["train_step"])
+    base, _ = median_iqr(times["train_step"])
     rows = []
     for k, ts in times.items():
-        med, iqr = _median_iqr(ts)
+        med, iqr = median_iqr(ts)
         rows.append(
             {
                 "section": "segments",
@@ -328,7 +315,7 @@ def main(argv=None) -> None:
     df = pd.DataFrame(rows)
     df["tasks"] = args.tasks
     df["torch"] = torch.__version__
-    df["commit"] = _commit()
+    df["commit"] = git_commit()
     df = df[COLUMNS]
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(df.drop(columns=["torch", "commit", "tasks"]).to_string(index=False))

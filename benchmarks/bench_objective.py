@@ -34,7 +34,6 @@ import copy
 import gc
 import math
 import os
-import subprocess
 import sys
 import time
 import warnings
@@ -51,6 +50,9 @@ from torchrl.objectives import BCLoss
 
 from tar_rl.io import write_csv_atomic
 from tar_rl.objectives import TARLoss, tar_weights
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
+from common import git_commit, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "objective.csv"
@@ -200,11 +202,6 @@ def interleaved(fns: dict[str, Callable[[], object]], reps: int, inner: int, see
     return times
 
 
-def median_iqr(x: np.ndarray) -> tuple[float, float]:
-    q25, q50, q75 = np.percentile(x, [25, 50, 75])
-    return float(q50), float(q75 - q25)
-
-
 # ---------------------------------------------------------------------------------------------
 # The two sections
 # ---------------------------------------------------------------------------------------------
@@ -332,16 +329,6 @@ def bench_weighting(reps: int, calls: int, seed: int) -> tuple[list[dict], list[
 # ---------------------------------------------------------------------------------------------
 # Output
 # ---------------------------------------------------------------------------------------------
-
-
-def git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, timeout=10, check=True
-        )
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return out.stdout.strip() or "unknown"
 
 
 def _fmt(x: float, digits: int = 3) -> str:
