@@ -206,6 +206,15 @@ class TARLoss(LossModule):
 
     # -- The objective ----------------------------------------------------------------------
 
+    def step_losses(self, tensordict: TensorDictBase) -> Tensor:
+        """The inner loss's per-step losses ``[B, L]`` (event dims reduced), unweighted.
+
+        For inspection (e.g. recording losses along whole demonstrations): it neither weights
+        the steps nor advances the schedule.
+        """
+        out = self.inner(tensordict)
+        return self._step_losses(out, self._loss_entry(out), tensordict)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Weighted segment loss of Eq. 2 on a ``[B, L]`` TensorDict; does not modify it."""
         if tensordict.batch_dims < 2:

@@ -12,11 +12,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_write", "write_csv_atomic", "write_json_atomic"]
+__all__ = ["atomic_write", "save_torch_atomic", "write_csv_atomic", "write_json_atomic"]
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[IO[str]], object]) -> Path:
-    """Call ``write(f)`` on a text file that becomes ``path`` only once it is complete.
+def atomic_write(path: str | os.PathLike, write: Callable[[IO], object], binary: bool = False) -> Path:
+    """Call ``write(f)`` on a file (text, or bytes with ``binary=True``) that becomes ``path`` only once complete.
 
     The folder is created if needed; the file gets ordinary permissions (0644, not mkstemp's 0600).
     """
@@ -24,7 +24,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[str]], object]) ->
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", newline="") as f:
+        with os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", newline="") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
@@ -45,3 +45,10 @@ def write_csv_atomic(df, path: str | os.PathLike) -> Path:
 def write_json_atomic(obj: Any, path: str | os.PathLike) -> Path:
     """Write ``obj`` as indented JSON atomically."""
     return atomic_write(path, lambda f: json.dump(obj, f, indent=1))
+
+
+def save_torch_atomic(obj: Any, path: str | os.PathLike) -> Path:
+    """``torch.save(obj)`` atomically: a crash leaves the previous file, never a truncated one."""
+    import torch
+
+    return atomic_write(path, lambda f: torch.save(obj, f), binary=True)

@@ -1,0 +1,803 @@
+"""Offline behaviour cloning on MetaWorld demonstrations: typed config -> ``make_*`` builders -> one loop.
+
+``tar-rl train [overrides]`` runs :func:`train` through Hydra (see ``recipes/config.py`` for the
+config). The loop::
+
+    segments [B, L] from the offline replay buffer (SliceSampler)
+      -> policy head's per-step losses [B, L, ...]
+      -> objective (TARLoss: uniform, tar or a control) -> loss_tar
+      -> AdamW step (warm-up + cosine decay, gradient clipping, optional EMA, AMP on CUDA)
+    every eval.every steps and at the end: the evaluator collectors (success, Fast20, NEPS)
+
+Run directory (``run_dir``, by default ``runs/<objective>-<policy>-s<seed>-<hash>``)::
+
+    config.yaml          the resolved config
+    checkpoint.pt        the whole training state (written atomically), see ``_checkpoint_state``
+    metrics.csv          tidy table: step, phase (train | eval), name, value
+    eval_rollouts.csv    one row per evaluation rollout (the evaluator's columns + step)
+    weights.csv          per-step loss and TAR weight along whole demonstrations (if recorded)
+    summary.json         final metrics per difficulty group; "finished": true marks a finished run
+
+Resume: running the same command again continues from ``checkpoint.pt`` with the same data
+order (the sampler's generator state), the same schedule and control RNG (the objective's state),
+the same optimiser, LR schedule and EMA state, and the logs as they were at that step; it reaches
+the same final weights as an uninterrupted run. A finished run is reported and skipped, so a sweep
+that was stopped half way is restarted with the same command.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from tar_rl.collectors import tasks as mw_tasks
+from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
+from tar_rl.data import DemoDataset, build_dataset
+from tar_rl.io import atomic_write, save_torch_atomic, write_csv_atomic, write_json_atomic
+from tar_rl.metrics import as_percent, summarize
+from tar_rl.objectives import WEIGHTINGS, MixSchedule, TARLoss, tar_weights
+from tar_rl.policies import POLICIES, DataInfo, Policy, build_policy
+
+from .config import CONFIG_NAME, register_configs
+
+__all__ = [
+    "CHECKPOINT",
+    "ConfigError",
+    "TrainingError",
+    "hydra_main",
+    "load_checkpoint",
+    "make_dataset",
+    "make_evaluator",
+    "make_objective",
+    "make_optimizer",
+    "make_policy",
+    "resolve_config",
+    "run_name",
+    "train",
+]
+
+CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_FORMAT = 1
+# Settings that do not change what a run computes: left out of the run's identity (its directory
+# name and the check made when resuming).
+_NOT_IDENTITY = (
+    ("data", "workers"),
+    ("data", "root"),
+    ("eval", "workers"),
+    ("logging", "progress"),
+    ("runs_root",),
+    ("run_dir",),
+)
+
+
+class ConfigError(ValueError):
+    """A bad setting, reported before any work starts."""
+
+
+class TrainingError(RuntimeError):
+    """The training run cannot go on (e.g. a non-finite loss); the last good checkpoint is kept."""
+
+
+# -- Config ------------------------------------------------------------------------------------
+
+
+def resolve_config(cfg: Any) -> dict:
+    """A plain dict of the job's settings from a Hydra ``DictConfig``, a :class:`TrainConfig` or a dict."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(cfg, DictConfig):
+        config = OmegaConf.to_container(cfg, resolve=True)
+    elif dataclasses.is_dataclass(cfg):
+        config = dataclasses.asdict(cfg)
+    elif isinstance(cfg, dict):
+        config = copy.deepcopy(cfg)
+    else:
+        raise ConfigError(f"expected a TrainConfig, a DictConfig or a dict, got {type(cfg).__name__}")
+    config.pop("defaults", None)
+    config.pop("hydra", None)
+    return config
+
+
+def _identity(config: dict) -> dict:
+    ident = copy.deepcopy(config)
+    for path in _NOT_IDENTITY:
+        node = ident
+        for key in path[:-1]:
+            node = node.get(key, {})
+        node.pop(path[-1], None)
+    return ident
+
+
+def run_name(config: dict) -> str:
+    """``<objective>-<policy>-s<seed>-<hash>``, the hash over the settings that change the result."""
+    digest = hashlib.sha256(json.dumps(_identity(config), sort_keys=True).encode()).hexdigest()[:8]
+    return f"{config['objective']['name']}-{config['policy']['name']}-s{config['seed']}-{digest}"
+
+
+def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for key in sorted(set(old) | set(new), key=str):
+            out += _differences(old.get(key, "<absent>"), new.get(key, "<absent>"), f"{prefix}{key}.")
+        return out
+    return [] if old == new else [f"{prefix[:-1]}: {old!r} -> {new!r}"]
+
+
+def _check_int(name: str, value, low: int, high: int | None = None) -> None:
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
+    if not ok:
+        bounds = f"between {low} and {high}" if high is not None else f">= {low}"
+        raise ConfigError(f"{name} must be an integer {bounds}, got {value!r}")
+
+
+def _check_choice(name: str, value, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise ConfigError(f"{name}={value!r} is not valid; choose one of {list(choices)}")
+
+
+def _resolve_tasks(name: str, spec: list[str]) -> tuple[str, ...]:
+    if not spec:
+        raise ConfigError(f"{name} is empty: name at least one task or group")
+    try:
+        return tuple(mw_tasks.resolve_tasks(list(spec)))
+    except ValueError as err:
+        raise ConfigError(f"{name}: {err}") from None
+
+
+def validate(config: dict) -> dict:
+    """Check every setting before any work; returns the resolved task lists ``{"train": ..., "eval": ...}``.
+
+    Raises:
+        ConfigError: naming the setting and the valid choices or range.
+    """
+    obj, data, ev, opt, log = (config[k] for k in ("objective", "data", "eval", "optim", "logging"))
+    _check_choice("objective.name", obj["name"], list(WEIGHTINGS))
+    _check_choice("policy.name", config["policy"]["name"], list(POLICIES))
+    _check_choice("objective.cap", obj["cap"], ["paper", "exact"])
+    _check_choice("objective.shape", obj["shape"], ["linear", "cosine"])
+    for key in ("start", "ramp"):
+        if not 0 <= obj[key] <= 1:
+            raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
+    train_tasks = _resolve_tasks("data.tasks", data["tasks"])
+    eval_tasks = _resolve_tasks("eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
+    for name, value, low in (
+        ("data.n_demos", data["n_demos"], 1),
+        ("data.slice_len", data["slice_len"], 1),
+        ("data.batch_segments", data["batch_segments"], 1),
+        ("data.chunk_horizon", data["chunk_horizon"], 1),
+        ("eval.rollouts", ev["rollouts"], 1),
+        ("eval.every", ev["every"], 0),
+        ("optim.steps", opt["steps"], 1),
+        ("optim.warmup", opt["warmup"], 0),
+        ("optim.skip_nonfinite", opt["skip_nonfinite"], 0),
+        ("logging.every", log["every"], 1),
+        ("logging.checkpoint_every", log["checkpoint_every"], 1),
+        ("logging.record_episodes", log["record_episodes"], 1),
+    ):
+        _check_int(name, value, low)
+    _check_int("eval.horizon", ev["horizon"], 1, MAX_HORIZON)
+    _check_int("threads", config["threads"], 0)
+    for name in ("data.workers", "eval.workers"):
+        value = config[name.split(".")[0]][name.split(".")[1]]
+        if value is not None:
+            _check_int(name, value, 0)
+    for step in log["record_weights_at"]:
+        if not (step == -1 or (isinstance(step, int) and 1 <= step <= opt["steps"])):
+            raise ConfigError(
+                f"logging.record_weights_at: {step!r} is not a step in 1..{opt['steps']} (or -1, the last)"
+            )
+    if not (opt["lr"] > 0 and math.isfinite(opt["lr"])):
+        raise ConfigError(f"optim.lr must be a positive number, got {opt['lr']}")
+    _check_choice("optim.decay", opt["decay"], ["cosine", "constant"])
+    if not 0 <= opt["min_lr_ratio"] <= 1:
+        raise ConfigError(f"optim.min_lr_ratio must lie in [0, 1], got {opt['min_lr_ratio']}")
+    if opt["grad_clip"] < 0:
+        raise ConfigError(f"optim.grad_clip must be >= 0 (0: off), got {opt['grad_clip']}")
+    if not 0 <= opt["ema"] < 1:
+        raise ConfigError(f"optim.ema is a decay in [0, 1) (0: off), got {opt['ema']}")
+    if len(opt["betas"]) != 2 or not all(0 <= b < 1 for b in opt["betas"]):
+        raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {opt['betas']}")
+    _device(config["device"])
+    # Demonstration and evaluation variations must never overlap (checked on the largest number
+    # of attempts collection may make, before collecting).
+    max_attempts = 3 * data["n_demos"] + 5
+    try:
+        mw_tasks.check_disjoint(
+            mw_tasks.variation_seeds(data["seed"], max_attempts), mw_tasks.variation_seeds(ev["seed"], ev["rollouts"])
+        )
+    except ValueError as err:
+        raise ConfigError(f"data.seed={data['seed']} and eval.seed={ev['seed']}: {err}") from None
+    # The objective and the head are built once on placeholder data so that their own checks run now.
+    try:
+        make_objective(config, make_policy(config, DataInfo()))
+    except (ValueError, TypeError) as err:
+        raise ConfigError(str(err)) from None
+    return {"train": train_tasks, "eval": eval_tasks}
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"device={name!r} is not a device; use auto, cpu, cuda or cuda:N") from None
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigError(f"device={name!r}: only cpu and cuda are supported")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device={name!r} but CUDA is not available here; use device=cpu or device=auto")
+    return device
+
+
+# -- Builders ----------------------------------------------------------------------------------
+
+
+def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> DemoDataset:
+    """The demonstration dataset (collected once, then loaded from ``data.root``)."""
+    data = config["data"]
+    return build_dataset(
+        data["root"],
+        list(tasks),
+        n_demos=data["n_demos"],
+        seed=data["seed"],
+        chunk_horizon=data["chunk_horizon"],
+        workers=data["workers"],
+        progress=progress,
+    )
+
+
+def make_policy(config: dict, info: DataInfo) -> Policy:
+    """The head named ``policy.name`` (registry ``tar_rl.policies.POLICIES``)."""
+    return build_policy(config["policy"], info)
+
+
+def make_objective(config: dict, policy: Policy) -> TARLoss:
+    """``TARLoss`` around the head's per-step loss, its schedule in fractions of ``optim.steps``."""
+    obj, steps = config["objective"], config["optim"]["steps"]
+    schedule = MixSchedule(start=round(obj["start"] * steps), ramp=round(obj["ramp"] * steps), shape=obj["shape"])
+    loss = TARLoss(
+        policy.loss,
+        obj["name"],
+        gamma=obj["gamma"],
+        w_max=obj["w_max"],
+        eps=obj["eps"],
+        cap=obj["cap"],
+        schedule=schedule,
+        perturb_fraction=obj["perturb_fraction"],
+        perturb_scale=obj["perturb_scale"],
+        seed=config["seed"],
+    )
+    if policy.event_valid is not None:
+        loss.set_keys(event_valid=policy.event_valid)
+    return loss
+
+
+def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
+    """AdamW and its schedule: linear warm-up over ``optim.warmup`` steps, then cosine or constant."""
+    opt = config["optim"]
+    optimizer = torch.optim.AdamW(params, lr=opt["lr"], betas=tuple(opt["betas"]), weight_decay=opt["weight_decay"])
+    steps, warmup, floor = opt["steps"], opt["warmup"], opt["min_lr_ratio"]
+
+    def factor(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        if opt["decay"] == "constant":
+            return 1.0
+        progress = min(1.0, (step - warmup) / max(1, steps - warmup))
+        return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
+
+    return optimizer, torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def make_evaluator(
+    config: dict, tasks: Sequence[str], progress: bool = True
+) -> Callable[[TensorDictModule], pd.DataFrame]:
+    """A function running the evaluator collectors on a policy, with ``eval``'s settings."""
+    ev = config["eval"]
+
+    def run(actor: TensorDictModule) -> pd.DataFrame:
+        return evaluate(
+            actor,
+            list(tasks),
+            rollouts_per_task=ev["rollouts"],
+            seed=ev["seed"],
+            horizon=ev["horizon"],
+            workers=ev["workers"],
+            progress=progress,
+        )
+
+    return run
+
+
+# -- Run state ---------------------------------------------------------------------------------
+
+
+def _summary_rows(step: int, table: pd.DataFrame) -> list[tuple]:
+    rows = []
+    for rec in table[table["level"] != "task"].itertuples():
+        for metric in ("success", "fast20", "neps"):
+            rows.append((step, "eval", f"{metric}/{rec.name}", float(getattr(rec, metric))))
+    return rows
+
+
+def _json_metric(value: float):
+    return "inf" if math.isinf(value) else value
+
+
+def print_table(table: pd.DataFrame, file=None) -> None:
+    """Success, 100 x Fast20 and 100 x NEPS per difficulty group and overall, as the paper reports them."""
+    pct = as_percent(table[table["level"] != "task"])
+    lines = [f"{'group':<11}{'tasks':>6}{'rollouts':>10}{'success %':>11}{'Fast20':>9}{'NEPS':>9}"]
+    for rec in pct.itertuples():
+        lines.append(
+            f"{rec.name:<11}{rec.n_tasks:>6}{rec.n_rollouts:>10}{rec.success:>11.1f}{rec.fast20:>9.1f}{rec.neps:>9.1f}"
+        )
+    print("\n".join(lines), file=file or sys.stdout)
+
+
+class _Logs:
+    """Everything a run logs, kept in memory (and in the checkpoint) and written out atomically."""
+
+    def __init__(self, run_dir: Path, metrics=None, rollouts=None, weights=None):
+        self.run_dir = run_dir
+        self.metrics: list[tuple] = list(metrics or [])
+        self.rollouts: list[dict] = list(rollouts or [])
+        self.weights: list[tuple] = list(weights or [])
+
+    def state(self) -> dict:
+        return {"metrics": self.metrics, "rollouts": self.rollouts, "weights": self.weights}
+
+    def write(self) -> None:
+        write_csv_atomic(
+            pd.DataFrame(self.metrics, columns=["step", "phase", "name", "value"]), self.run_dir / "metrics.csv"
+        )
+        if self.rollouts:
+            write_csv_atomic(pd.DataFrame(self.rollouts), self.run_dir / "eval_rollouts.csv")
+        if self.weights:
+            columns = ["step", "task", "episode", "t", "loss", "weight", "gripper"]
+            write_csv_atomic(pd.DataFrame(self.weights, columns=columns), self.run_dir / "weights.csv")
+
+
+def _rollout_records(step: int, df: pd.DataFrame) -> list[dict]:
+    df = df.assign(step=step)
+    return [
+        {k: (v.item() if isinstance(v, np.generic) else v) for k, v in rec.items()} for rec in df.to_dict("records")
+    ]
+
+
+def _eval_actor(actor: TensorDictModule, ema) -> TensorDictModule:
+    """A CPU copy of the policy for the evaluator's worker processes (the EMA weights if given)."""
+    module = ema.module if ema is not None else actor.module
+    module = copy.deepcopy(module).to("cpu").eval()
+    return TensorDictModule(module, in_keys=list(actor.in_keys), out_keys=list(actor.out_keys))
+
+
+def record_weights(
+    objective: TARLoss, episodes: list[tuple[str, int, TensorDict]], slice_len: int, step: int
+) -> list[tuple]:
+    """Per-step loss and TAR weight along whole demonstrations, for the paper's Fig. 5.
+
+    The loss is the head's per-step loss at the current weights. The weight of a step is TAR's
+    weight (the objective's gamma, w_max, eps and cap, at full strength whatever the run's
+    weighting and schedule) averaged over every ``slice_len``-step window of the episode that
+    contains the step: the weight the step receives on average when training samples a segment
+    containing it. An episode shorter than ``slice_len`` is one window.
+    """
+    rows = []
+    was_training = objective.training
+    objective.eval()
+    params = objective.tar_params
+    try:
+        with torch.no_grad():
+            for task, episode, td in episodes:
+                losses = objective.step_losses(td.unsqueeze(0)).squeeze(0).float().cpu()
+                n = losses.shape[0]
+                width = min(slice_len, n)
+                windows = losses.unfold(0, width, 1)  # [n - width + 1, width]
+                w = tar_weights(
+                    windows,
+                    torch.ones_like(windows, dtype=torch.bool),
+                    gamma=params.gamma,
+                    w_max=params.w_max,
+                    eps=params.eps,
+                    cap=params.cap,
+                )
+                total = torch.zeros(n)
+                count = torch.zeros(n)
+                for offset in range(width):
+                    idx = torch.arange(windows.shape[0]) + offset
+                    total.index_add_(0, idx, w[:, offset])
+                    count.index_add_(0, idx, torch.ones(windows.shape[0]))
+                weight = total / count
+                gripper = td["action"][..., -1].float().cpu()
+                for t in range(n):
+                    rows.append((step, task, episode, t, float(losses[t]), float(weight[t]), float(gripper[t])))
+    finally:
+        objective.train(was_training)
+    return rows
+
+
+def _demo_episodes(
+    dataset: DemoDataset, tasks: Sequence[str], per_task: int, keys, device
+) -> list[tuple[str, int, TensorDict]]:
+    data = dataset.data
+    episode = data["episode"].numpy()
+    task_id = data["task_id"].numpy()
+    out = []
+    for task in tasks:
+        ids = np.unique(episode[task_id == mw_tasks.task_index(task)])[:per_task]
+        for e in ids:
+            idx = np.flatnonzero(episode == e)
+            td = data[int(idx[0]) : int(idx[-1]) + 1]
+            td = td.select(*keys) if keys is not None else td
+            out.append((task, int(e), td.clone().to(device)))
+    return out
+
+
+# -- Checkpoints -------------------------------------------------------------------------------
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint written by :func:`train`.
+
+    Raises:
+        FileNotFoundError: no file at ``path`` (a run directory is accepted and its checkpoint read).
+        ValueError: the file is not a tar-rl checkpoint of a known format.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise ValueError(f"{path} is not a readable tar-rl checkpoint: {err}") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a tar-rl checkpoint of format {CHECKPOINT_FORMAT}")
+    return state
+
+
+def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModule:
+    """Rebuild the saved policy (EMA weights if the run kept them) for inference, on CPU."""
+    config = state["config"]
+    policy = make_policy(config, DataInfo.from_dict(state["data_info"]))
+    weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
+    try:
+        policy.actor.module.load_state_dict(weights)
+    except RuntimeError as err:
+        raise ValueError(
+            f"{path}: the saved weights do not fit the policy {config['policy']['name']!r} built from its config: {err}"
+        ) from None
+    return policy.actor.eval()
+
+
+def evaluate_checkpoint(
+    path: str | Path,
+    tasks: Sequence[str] | None = None,
+    rollouts: int | None = None,
+    seed: int | None = None,
+    horizon: int | None = None,
+    workers: int | None = None,
+    out: str | Path | None = None,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Evaluate a saved policy; settings default to the run's ``eval`` config. Prints the table.
+
+    Writes the rollouts to ``out`` (default ``eval-<seed>.csv`` beside the checkpoint) and returns them.
+
+    Raises:
+        FileNotFoundError: no checkpoint there. ValueError / ConfigError: not a checkpoint, a
+        policy that does not fit it, or bad settings (named).
+    """
+    path = Path(path)
+    state = load_checkpoint(path)
+    config = copy.deepcopy(state["config"])
+    ev = config["eval"]
+    for key, value in (("rollouts", rollouts), ("seed", seed), ("horizon", horizon), ("workers", workers)):
+        if value is not None:
+            ev[key] = value
+    if tasks:
+        ev["tasks"] = list(tasks)
+    names = validate(config)["eval"]
+    actor = policy_from_checkpoint(state, path)
+    rollouts_df = make_evaluator(config, names, progress=progress)(actor)
+    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev['seed']}.csv"
+    write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
+    print(f"{path} (step {state['step']}), {ev['rollouts']} rollouts per task, seed {ev['seed']}; rollouts in {target}")
+    print_table(summarize(rollouts_df))
+    return rollouts_df
+
+
+# -- The job -----------------------------------------------------------------------------------
+
+
+def _prepare_run_dir(config: dict) -> Path:
+    run_dir = Path(config["run_dir"] or Path(config["runs_root"]) / run_name(config))
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write(run_dir / ".write-test", lambda f: f.write("ok"))
+        (run_dir / ".write-test").unlink()
+    except OSError as err:
+        raise ConfigError(f"cannot write to the run directory {run_dir}: {err}") from None
+    return run_dir
+
+
+def _check_resumable(run_dir: Path, config: dict) -> dict | None:
+    """The checkpoint to resume from (None for a new run); refuses one made with other settings."""
+    path = run_dir / CHECKPOINT
+    if not path.exists():
+        return None
+    state = load_checkpoint(path)
+    diff = _differences(_identity(state["config"]), _identity(config))
+    if diff:
+        raise ConfigError(
+            f"{run_dir} holds a run with other settings ({'; '.join(diff)}); choose another run_dir or remove it"
+        )
+    return state
+
+
+def train(cfg: Any) -> Path:
+    """Run (or resume, or skip if finished) the training job; returns its run directory.
+
+    Args:
+        cfg: a Hydra ``DictConfig``, a :class:`TrainConfig` or an equivalent dict.
+
+    Raises:
+        ConfigError: a bad setting, an unwritable run directory, or a run directory holding a
+            different run; raised before any data is collected or any step is taken.
+        TrainingError: non-finite losses beyond ``optim.skip_nonfinite``.
+    """
+    config = resolve_config(cfg)
+    tasks = validate(config)
+    run_dir = _prepare_run_dir(config)
+    resume = _check_resumable(run_dir, config)
+    progress = config["logging"]["progress"]
+    summary_path = run_dir / "summary.json"
+    if resume is not None and resume.get("finished") and summary_path.exists():
+        print(f"{run_dir}: finished already ({resume['step']} steps); not run again")
+        return run_dir
+
+    from omegaconf import OmegaConf
+
+    atomic_write(run_dir / "config.yaml", lambda f: f.write(OmegaConf.to_yaml(OmegaConf.create(config))))
+    device = _device(config["device"])
+    if config["threads"]:
+        torch.set_num_threads(config["threads"])
+    torch.manual_seed(config["seed"])
+    dataset = make_dataset(config, tasks["train"], progress=progress)
+    dataset.check_disjoint(config["eval"]["seed"], config["eval"]["rollouts"])
+    info = DataInfo.from_metadata(dataset.metadata)
+    policy = make_policy(config, info)
+    objective = make_objective(config, policy).to(device)
+    opt_cfg, log_cfg = config["optim"], config["logging"]
+    params = [p for p in objective.parameters() if p.requires_grad]
+    optimizer, scheduler = make_optimizer(config, params)
+    ema = None
+    if opt_cfg["ema"] > 0:
+        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+        ema = AveragedModel(policy.actor.module, multi_avg_fn=get_ema_multi_avg_fn(opt_cfg["ema"]), use_buffers=True)
+    generator = torch.Generator().manual_seed(config["seed"])
+    sampler = dataset.segments(
+        config["data"]["batch_segments"], config["data"]["slice_len"], keys=policy.keys, generator=generator
+    )
+    evaluator = make_evaluator(config, tasks["eval"], progress=progress)
+    steps = opt_cfg["steps"]
+    record_at = {steps if s == -1 else s for s in log_cfg["record_weights_at"]}
+    episodes = (
+        _demo_episodes(dataset, tasks["train"], log_cfg["record_episodes"], policy.keys, device) if record_at else []
+    )
+
+    logs = _Logs(run_dir)
+    start, skipped, train_seconds = 0, 0, 0.0
+    if resume is not None:
+        _check_data_info(resume, info, run_dir)
+        objective.load_state_dict(resume["objective"])
+        optimizer.load_state_dict(resume["optimizer"])
+        scheduler.load_state_dict(resume["scheduler"])
+        if ema is not None:
+            ema.load_state_dict(resume["ema"])
+        generator.set_state(resume["sampler_rng"])
+        torch.set_rng_state(resume["torch_rng"])
+        logs = _Logs(run_dir, **resume["logs"])
+        start, skipped, train_seconds = resume["step"], resume["skipped"], resume["train_seconds"]
+        print(f"{run_dir}: resuming at step {start} of {steps}")
+    logs.write()
+
+    def checkpoint(step: int, finished: bool = False) -> None:
+        state = {
+            "format": CHECKPOINT_FORMAT,
+            "step": step,
+            "finished": finished,
+            "config": config,
+            "data_info": info.to_dict(),
+            "policy": policy.actor.module.state_dict(),
+            "ema_policy": ema.module.state_dict() if ema is not None else None,
+            "objective": objective.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "ema": ema.state_dict() if ema is not None else None,
+            "sampler_rng": generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "logs": logs.state(),
+            "skipped": skipped,
+            "train_seconds": train_seconds,
+        }
+        save_torch_atomic(state, run_dir / CHECKPOINT)
+
+    def run_eval(step: int) -> pd.DataFrame:
+        rollouts = evaluator(_eval_actor(policy.actor, ema if config["eval"]["use_ema"] else None))
+        table = summarize(rollouts)
+        logs.rollouts += _rollout_records(step, rollouts)
+        logs.metrics += _summary_rows(step, table)
+        return table
+
+    from tqdm import tqdm
+
+    use_amp = opt_cfg["amp"] and device.type == "cuda"
+    clip = opt_cfg["grad_clip"] if opt_cfg["grad_clip"] > 0 else math.inf
+    names = ("loss_tar", "uniform_loss", "tar_mix", "weight_max", "weight_ess")
+    acc = {n: 0.0 for n in (*names, "grad_norm")}
+    n_acc, tick = 0, time.perf_counter()
+    objective.train()
+    bar = tqdm(total=steps, initial=start, desc="train", unit="step", disable=not progress, mininterval=1.0)
+    try:
+        for step in range(start, steps):
+            batch = sampler.sample().to(device, non_blocking=True)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
+                out = objective(batch)
+            loss = out["loss_tar"]
+            optimizer.zero_grad(set_to_none=True)
+            finite = bool(torch.isfinite(loss))
+            if finite:
+                loss.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(params, clip)
+                finite = bool(torch.isfinite(grad_norm))
+            if not finite:
+                skipped += 1
+                optimizer.zero_grad(set_to_none=True)
+                if skipped > opt_cfg["skip_nonfinite"]:
+                    last = load_checkpoint(run_dir / CHECKPOINT)["step"] if (run_dir / CHECKPOINT).exists() else None
+                    raise TrainingError(
+                        f"non-finite loss or gradient at step {step + 1} (loss={float(loss.detach())}); "
+                        f"{skipped} such step(s), optim.skip_nonfinite={opt_cfg['skip_nonfinite']}. "
+                        + (
+                            f"The last good checkpoint (step {last}) is kept in {run_dir / CHECKPOINT}."
+                            if last is not None
+                            else "No checkpoint had been written yet."
+                        )
+                    )
+                scheduler.step()
+            else:
+                optimizer.step()
+                scheduler.step()
+                if ema is not None:
+                    ema.update_parameters(policy.actor.module)
+                for n in names:
+                    acc[n] += float(out[n].detach())
+                acc["grad_norm"] += float(grad_norm)
+                n_acc += 1
+            done = step + 1
+            bar.update(1)
+            if done % log_cfg["every"] == 0 or done == steps:
+                now = time.perf_counter()
+                train_seconds += now - tick
+                if n_acc:
+                    logs.metrics += [(done, "train", "loss" if n == "loss_tar" else n, acc[n] / n_acc) for n in acc]
+                logs.metrics += [
+                    (done, "train", "lr", float(scheduler.get_last_lr()[0])),
+                    (done, "train", "skipped", float(skipped)),
+                ]
+                bar.set_postfix(loss=f"{acc['loss_tar'] / max(n_acc, 1):.4g}", alpha=f"{float(out['tar_mix']):.2f}")
+                acc = dict.fromkeys(acc, 0.0)
+                n_acc = 0
+                tick = now
+            if config["eval"]["every"] and done % config["eval"]["every"] == 0 and done != steps:
+                run_eval(done)
+                tick = time.perf_counter()
+            if done in record_at:
+                logs.weights += record_weights(objective, episodes, config["data"]["slice_len"], done)
+                objective.train()
+            if done % log_cfg["checkpoint_every"] == 0 and done != steps:
+                train_seconds += time.perf_counter() - tick
+                tick = time.perf_counter()
+                checkpoint(done)
+                logs.write()
+    finally:
+        bar.close()
+    train_seconds += time.perf_counter() - tick
+
+    start_eval = time.perf_counter()
+    table = run_eval(steps)
+    eval_seconds = time.perf_counter() - start_eval
+    checkpoint(steps, finished=True)
+    logs.write()
+    summary = {
+        "run_name": run_dir.name,
+        "objective": config["objective"]["name"],
+        "policy": config["policy"]["name"],
+        "seed": config["seed"],
+        "steps": steps,
+        "finished": True,
+        "final": [
+            {**rec, "neps": _json_metric(rec["neps"])} for rec in table[table["level"] != "task"].to_dict("records")
+        ],
+        "final_train_loss": _last_metric(logs.metrics, "loss"),
+        "nonfinite_steps_skipped": skipped,
+        "train_seconds": train_seconds,
+        "final_eval_seconds": eval_seconds,
+        "config": config,
+        "git_commit": _git_commit(),
+        "versions": {"torch": torch.__version__, **dataset.metadata["versions"]},
+    }
+    write_json_atomic(summary, summary_path)
+    print(f"\n{run_dir}: {steps} steps, final evaluation ({config['eval']['rollouts']} rollouts per task):")
+    print_table(table)
+    return run_dir
+
+
+def _check_data_info(state: dict, info: DataInfo, run_dir: Path) -> None:
+    if DataInfo.from_dict(state["data_info"]) != info:
+        raise ConfigError(f"{run_dir}: the dataset differs from the one the checkpoint was trained on")
+
+
+def _last_metric(rows: list[tuple], name: str) -> float | None:
+    values = [r[3] for r in rows if r[1] == "train" and r[2] == name]
+    return values[-1] if values else None
+
+
+def _git_commit() -> str | None:
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+# -- Hydra entry point -------------------------------------------------------------------------
+
+
+def hydra_main(argv: list[str] | None = None) -> int:
+    """``tar-rl train [overrides] [--cfg job] [-m]``: Hydra parses the command line, :func:`train` runs."""
+    import logging
+
+    import hydra
+
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    register_configs()
+
+    @hydra.main(version_base="1.3", config_path=None, config_name=CONFIG_NAME)
+    def _main(cfg) -> None:
+        try:
+            train(cfg)
+        except ConfigError as err:
+            raise SystemExit(f"tar-rl train: {err}") from None
+        except TrainingError as err:
+            raise SystemExit(f"tar-rl train: {err}") from None
+
+    saved = sys.argv
+    sys.argv = ["tar-rl train", *(sys.argv[2:] if argv is None else argv)]
+    try:
+        _main()
+    finally:
+        sys.argv = saved
+    return 0

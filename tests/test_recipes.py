@@ -1,0 +1,469 @@
+"""The offline BC recipe: config, builders, the training job, checkpoints and resume, `tar-rl eval`.
+
+Real MetaWorld, tiny: one module-scoped dataset (reach, 2 demos) shared by every run; training
+runs of 30 steps and evaluations of one short rollout. Expected values are computed by hand or
+with the plain-Python reference of Eqs. 3-8 (``tests/tar_reference.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+from hydra import compose, initialize
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigAttributeError, ValidationError
+from tar_reference import ref_tar_segment
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.objectives import BCLoss
+
+from tar_rl import TARLoss
+from tar_rl.data import SegmentSampler
+from tar_rl.objectives import WEIGHTINGS
+from tar_rl.policies import POLICIES, DataInfo
+from tar_rl.recipes.config import register_configs
+from tar_rl.recipes.offline_bc import (
+    CHECKPOINT,
+    ConfigError,
+    TrainingError,
+    evaluate_checkpoint,
+    load_checkpoint,
+    make_objective,
+    make_optimizer,
+    make_policy,
+    record_weights,
+    resolve_config,
+    train,
+)
+
+TASK = "reach"
+
+
+def compose_config(*overrides: str) -> dict:
+    register_configs()
+    with initialize(version_base="1.3", config_path=None):
+        return resolve_config(compose(config_name="train", overrides=list(overrides)))
+
+
+@pytest.fixture(scope="module")
+def data_root(tmp_path_factory):
+    return tmp_path_factory.mktemp("datasets")
+
+
+def tiny(tmp_path: Path, data_root: Path, *overrides: str) -> dict:
+    """A 30-step job on the shared tiny dataset, evaluated with one 20-step rollout."""
+    return compose_config(
+        f"data.tasks=[{TASK}]",
+        "data.n_demos=2",
+        "data.workers=1",
+        f"data.root={data_root}",
+        "data.batch_segments=8",
+        "data.slice_len=8",
+        "policy.hidden=[32,32]",
+        "optim.steps=30",
+        "optim.warmup=5",
+        "logging.every=5",
+        "logging.checkpoint_every=10",
+        "logging.progress=false",
+        "logging.record_weights_at=[]",
+        "eval.rollouts=1",
+        "eval.horizon=20",
+        "eval.workers=1",
+        f"runs_root={tmp_path / 'runs'}",
+        *overrides,
+    )
+
+
+# -- Config -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("policy", sorted(POLICIES))
+@pytest.mark.parametrize("objective", sorted(WEIGHTINGS))
+def test_every_registered_objective_and_policy_builds_from_defaults(objective, policy):
+    config = compose_config(f"objective={objective}", f"policy={policy}")
+    assert config["objective"]["name"] == objective and config["policy"]["name"] == policy
+    torch.manual_seed(0)
+    built = make_policy(config, DataInfo())
+    loss = make_objective(config, built)
+    batch = TensorDict(
+        {
+            "observation": torch.randn(3, 5, 39),
+            "task_id": torch.randint(0, 50, (3, 5)),
+            "action": torch.rand(3, 5, 4) * 2 - 1,
+            ("collector", "mask"): torch.ones(3, 5, dtype=torch.bool),
+        },
+        [3, 5],
+    )
+    out = loss(batch)
+    assert out["loss_tar"].shape == () and torch.isfinite(out["loss_tar"])
+    out["loss_tar"].backward()
+    assert all(p.grad is not None for p in built.actor.parameters())
+    action = built.actor(batch[:, 0])["action"]
+    assert action.shape == (3, 4)
+
+
+def test_objective_override_sets_the_weighting_and_its_parameters():
+    config = compose_config("objective=uniform")
+    assert config["objective"]["name"] == "uniform"
+    config = compose_config("objective=tar", "objective.gamma=2", "objective.cap=exact")
+    assert (config["objective"]["gamma"], config["objective"]["cap"]) == (2.0, "exact")
+
+
+def test_schedule_fractions_become_steps():
+    config = compose_config("optim.steps=1000", "objective.start=0.2", "objective.ramp=0.3")
+    loss = make_objective(config, make_policy(config, DataInfo()))
+    assert (loss.schedule.start, loss.schedule.ramp) == (200, 300)
+
+
+@pytest.mark.parametrize(
+    ("override", "error", "named"),
+    [
+        ("optim.lrr=1", ConfigCompositionException, "lrr"),
+        ("seed=abc", ConfigCompositionException, "seed"),
+        ("objective=nope", ConfigCompositionException, "shuffle"),  # the valid options are listed
+        ("policy=nope", ConfigCompositionException, "mlp"),
+        ("objective.temperature=2", ConfigCompositionException, "temperature"),
+    ],
+)
+def test_unknown_keys_and_options_are_refused_at_composition(override, error, named):
+    with pytest.raises(error) as info:
+        compose_config(override)
+    text = str(info.value) + str(info.value.__cause__ or "")
+    assert named in text
+
+
+@pytest.mark.parametrize(
+    ("overrides", "named"),
+    [
+        (["data.tasks=[reach,not-a-task]"], "not-a-task"),
+        (["eval.tasks=[nope]"], "eval.tasks"),
+        (["data.tasks=[]"], "data.tasks is empty"),
+        (["eval.horizon=501"], "eval.horizon"),
+        (["objective.cap=loose"], "objective.cap"),
+        (["objective.start=1.5"], "objective.start"),
+        (["objective.w_max=0.5", "objective.cap=exact"], "w_max"),
+        (["optim.decay=step"], "optim.decay"),
+        (["optim.ema=1.0"], "optim.ema"),
+        (["optim.steps=0"], "optim.steps"),
+        (["logging.record_weights_at=[5000000]"], "record_weights_at"),
+        (["data.seed=1000", "eval.seed=1000"], "eval.seed"),
+        (["device=tpu"], "device"),
+    ],
+)
+def test_bad_values_are_refused_before_any_work(tmp_path, overrides, named):
+    config = compose_config(f"data.root={tmp_path / 'data'}", f"runs_root={tmp_path / 'runs'}", *overrides)
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
+        train(config)
+    assert not (tmp_path / "data").exists()  # nothing was collected
+    assert not (tmp_path / "runs").exists()
+
+
+def test_cuda_device_refused_without_cuda(tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here")
+    config = compose_config("device=cuda", f"runs_root={tmp_path}")
+    with pytest.raises(ConfigError, match="CUDA is not available"):
+        train(config)
+
+
+def test_unwritable_run_directory_is_refused(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    config = compose_config(f"run_dir={blocker / 'run'}", f"data.root={tmp_path / 'data'}")
+    with pytest.raises(ConfigError, match="cannot write to the run directory"):
+        train(config)
+
+
+def test_structured_values_are_type_checked():
+    register_configs()
+    with initialize(version_base="1.3", config_path=None):
+        cfg = compose(config_name="train")
+    with pytest.raises(ValidationError):
+        cfg.optim.steps = "many"
+    with pytest.raises(ConfigAttributeError):
+        cfg.optim.not_there = 1
+
+
+def test_cli_cfg_job_prints_the_config_without_running(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "tar_rl", "train", "objective=uniform", "optim.steps=7", "--cfg", "job"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "name: uniform" in out.stdout and "steps: 7" in out.stdout
+    assert list(tmp_path.iterdir()) == []  # no run directory, no Hydra output folder
+
+
+def test_cli_reports_a_bad_key_and_fails(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "tar_rl", "train", "optim.lrr=1"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode != 0
+    assert "lrr" in out.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+# -- Builders -----------------------------------------------------------------------------------
+
+
+def test_learning_rate_schedule_by_hand():
+    config = compose_config("optim.steps=110", "optim.warmup=10", "optim.lr=1.0", "optim.min_lr_ratio=0.1")
+    param = torch.nn.Parameter(torch.zeros(1))
+    optimizer, scheduler = make_optimizer(config, [param])
+    lrs = []
+    for _ in range(110):
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert lrs[0] == pytest.approx(0.1)  # (0 + 1) / 10
+    assert lrs[9] == pytest.approx(1.0)
+    assert lrs[10] == pytest.approx(1.0)  # cosine starts at its peak
+    # half way through the decay (step 60 of 10..110): 0.1 + 0.9 * 0.5 * (1 + cos(pi / 2)) = 0.55
+    assert lrs[60] == pytest.approx(0.55)
+    assert lrs[109] == pytest.approx(0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 99 / 100)))
+
+
+def test_record_weights_matches_the_reference_averaged_over_windows():
+    # A 1-D action and an actor that always outputs 0: the per-step MSE is action_t ** 2.
+    actor = TensorDictModule(torch.nn.Linear(1, 1, bias=False), in_keys=["observation"], out_keys=["action"])
+    torch.nn.init.zeros_(actor.module.weight)
+    objective = TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), "uniform", gamma=1.0, w_max=3.0)
+    a = torch.tensor([0.1, 0.5, 0.2, 0.9, 0.3])
+    episode = TensorDict({"observation": torch.zeros(5, 1), "action": a[:, None]}, [5])
+    rows = record_weights(objective, [("reach", 7, episode)], slice_len=3, step=11)
+    losses = [float(v) ** 2 for v in a]
+    # Windows of 3 steps: [0..2], [1..3], [2..4]; each step's weight is its mean over the windows holding it.
+    windows = [ref_tar_segment(losses[s : s + 3], [True] * 3, gamma=1.0, w_max=3.0) for s in range(3)]
+    expected = [
+        windows[0][0],
+        (windows[0][1] + windows[1][0]) / 2,
+        (windows[0][2] + windows[1][1] + windows[2][0]) / 3,
+        (windows[1][2] + windows[2][1]) / 2,
+        windows[2][2],
+    ]
+    assert (
+        [r[0] for r in rows] == [11] * 5 and [r[2] for r in rows] == [7] * 5 and [r[3] for r in rows] == list(range(5))
+    )
+    assert [r[4] for r in rows] == pytest.approx(losses, rel=1e-6)
+    assert [r[5] for r in rows] == pytest.approx(expected, rel=1e-5)
+    assert [r[6] for r in rows] == pytest.approx(a.tolist())  # the last action dim
+
+
+# -- The job ------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory, data_root):
+    tmp = tmp_path_factory.mktemp("smoke")
+    config = tiny(tmp, data_root, "logging.record_weights_at=[10,-1]", "eval.every=20")
+    return train(config), config
+
+
+def test_smoke_run_writes_every_output(smoke_run):
+    run_dir, _ = smoke_run
+    assert run_dir.name.startswith("tar-mlp-s0-")
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    assert list(metrics.columns) == ["step", "phase", "name", "value"]
+    train_rows = metrics[metrics.phase == "train"]
+    assert sorted(train_rows.step.unique()) == [5, 10, 15, 20, 25, 30]
+    assert {"loss", "uniform_loss", "tar_mix", "weight_max", "weight_ess", "lr", "grad_norm"} <= set(train_rows.name)
+    eval_rows = metrics[metrics.phase == "eval"]
+    assert sorted(eval_rows.step.unique()) == [20, 30]  # eval.every=20, then the final one
+    assert {"success/overall", "fast20/easy", "neps/overall"} <= set(eval_rows.name)
+    rollouts = pd.read_csv(run_dir / "eval_rollouts.csv")
+    assert len(rollouts) == 2 and sorted(rollouts.step) == [20, 30] and set(rollouts.task) == {f"{TASK}-v3"}
+    weights = pd.read_csv(run_dir / "weights.csv")
+    assert sorted(weights.step.unique()) == [10, 30]
+    # one demonstration of the task at each recorded step, every step of it
+    assert weights.groupby("step").size().nunique() == 1 and len(weights) % 2 == 0
+    assert (weights.groupby("step").t.max() + 1 == len(weights) // 2).all()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["finished"] and summary["steps"] == 30 and summary["objective"] == "tar"
+    overall = next(r for r in summary["final"] if r["level"] == "overall")
+    assert overall["n_rollouts"] == 1 and overall["success"] in (0.0, 1.0)
+    assert (run_dir / "config.yaml").read_text().count("name: tar") == 1
+    state = load_checkpoint(run_dir)
+    assert state["step"] == 30 and state["finished"]
+
+
+def test_training_changes_the_policy_that_is_evaluated(smoke_run, data_root):
+    run_dir, config = smoke_run
+    state = load_checkpoint(run_dir)
+    torch.manual_seed(config["seed"])
+    fresh = make_policy(config, DataInfo.from_dict(state["data_info"]))
+    for name, value in fresh.actor.module.state_dict().items():
+        if name.startswith("norm."):
+            assert torch.equal(value, state["policy"][name])  # the dataset statistics
+        else:
+            assert not torch.equal(value, state["policy"][name]), name  # trained
+    # the checkpoint's policy is the one that ran in the final evaluation: re-evaluating it agrees
+    again = evaluate_checkpoint(run_dir, progress=False)
+    rollouts = pd.read_csv(run_dir / "eval_rollouts.csv")
+    final = rollouts[rollouts.step == 30].reset_index(drop=True)
+    assert again["success"].tolist() == final["success"].tolist()
+    assert again["steps"].tolist() == final["steps"].tolist()
+    assert (run_dir / "eval-1000.csv").exists()
+
+
+def test_a_finished_run_is_not_run_again(smoke_run, capsys):
+    run_dir, config = smoke_run
+    before = (run_dir / CHECKPOINT).stat().st_mtime_ns
+    assert train(config) == run_dir
+    assert "finished already" in capsys.readouterr().out
+    assert (run_dir / CHECKPOINT).stat().st_mtime_ns == before
+
+
+def test_a_run_directory_holding_other_settings_is_refused(smoke_run, tmp_path, data_root):
+    run_dir, _ = smoke_run
+    config = tiny(tmp_path, data_root, f"run_dir={run_dir}", "objective.gamma=2")
+    with pytest.raises(ConfigError, match=r"objective\.gamma: 1\.0 -> 2\.0"):
+        train(config)
+
+
+def test_eval_command_errors(tmp_path, smoke_run):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        evaluate_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a readable tar-rl checkpoint"):
+        evaluate_checkpoint(tmp_path / "junk.pt")
+    # a checkpoint whose config no longer fits its weights (hidden sizes changed by hand)
+    run_dir, _ = smoke_run
+    state = load_checkpoint(run_dir)
+    state["config"]["policy"]["hidden"] = [16]
+    torch.save(state, tmp_path / "edited.pt")
+    with pytest.raises(ValueError, match="do not fit the policy"):
+        evaluate_checkpoint(tmp_path / "edited.pt", progress=False)
+
+
+# -- Resume ----------------------------------------------------------------------------------
+
+
+def _final_state(run_dir: Path) -> dict:
+    return load_checkpoint(run_dir)
+
+
+def _assert_same_training(a: dict, b: dict) -> None:
+    for name in a["policy"]:
+        assert torch.equal(a["policy"][name], b["policy"][name]), name
+    for name in a["ema_policy"] or {}:
+        assert torch.equal(a["ema_policy"][name], b["ema_policy"][name]), name
+    assert torch.equal(a["sampler_rng"], b["sampler_rng"])
+    assert a["objective"]["schedule_step"] == b["objective"]["schedule_step"] == a["step"]
+    sa, sb = a["optimizer"]["state"], b["optimizer"]["state"]
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        assert torch.equal(sa[k]["exp_avg"], sb[k]["exp_avg"])
+    train_a = [r for r in a["logs"]["metrics"] if r[1] == "train"]
+    train_b = [r for r in b["logs"]["metrics"] if r[1] == "train"]
+    assert train_a == train_b
+
+
+class _Crash(Exception):
+    pass
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory, data_root):
+    tmp = tmp_path_factory.mktemp("whole")
+    # `random` draws from the objective's generator every step; EMA adds its own state.
+    config = tiny(tmp, data_root, "objective=random", "optim.ema=0.9", "logging.record_weights_at=[]")
+    return _final_state(train(config)), config
+
+
+@pytest.mark.parametrize("crash_at", [17, 21])  # between checkpoints; right after the one at step 20
+def test_a_killed_run_resumes_to_the_same_final_weights(tmp_path, data_root, monkeypatch, uninterrupted, crash_at):
+    whole, whole_config = uninterrupted
+    config = {**whole_config, "runs_root": str(tmp_path / "runs")}
+    calls = {"n": 0}
+    original = SegmentSampler.sample
+
+    def sample(self):
+        calls["n"] += 1
+        if calls["n"] == crash_at:  # the sample of step crash_at: steps 1..crash_at-1 are done
+            raise _Crash
+        return original(self)
+
+    monkeypatch.setattr(SegmentSampler, "sample", sample)
+    with pytest.raises(_Crash):
+        train(config)
+    (run_dir,) = list(Path(config["runs_root"]).iterdir())
+    assert load_checkpoint(run_dir)["step"] == 10 * ((crash_at - 1) // 10)
+    assert not (run_dir / "summary.json").exists()
+    monkeypatch.setattr(SegmentSampler, "sample", original)
+    train(config)
+    _assert_same_training(whole, _final_state(run_dir))
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    assert sorted(metrics[metrics.phase == "train"].step.unique()) == [5, 10, 15, 20, 25, 30]  # no step logged twice
+
+
+def test_a_crash_while_writing_a_checkpoint_keeps_the_previous_one(tmp_path, data_root, monkeypatch, uninterrupted):
+    whole, whole_config = uninterrupted
+    config = {**whole_config, "runs_root": str(tmp_path / "runs")}
+    real_save = torch.save
+    calls = {"n": 0}
+
+    def failing_save(obj, f, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:  # the checkpoint of step 20: write half of it, then die
+            f.write(b"\x80partial")
+            raise _Crash
+        return real_save(obj, f, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", failing_save)
+    with pytest.raises(_Crash):
+        train(config)
+    (run_dir,) = list(Path(config["runs_root"]).iterdir())
+    assert load_checkpoint(run_dir)["step"] == 10  # the intact earlier checkpoint
+    assert not [p for p in run_dir.iterdir() if p.name.endswith(".tmp")]
+    monkeypatch.setattr(torch, "save", real_save)
+    train(config)
+    _assert_same_training(whole, _final_state(run_dir))
+
+
+def _nan_after(monkeypatch, step: int) -> None:
+    real_forward = TARLoss.forward
+
+    def forward(self, tensordict):
+        out = real_forward(self, tensordict)
+        if int(out["schedule_step"]) + 1 >= step:
+            out["loss_tar"] = out["loss_tar"] * float("nan")
+        return out
+
+    monkeypatch.setattr(TARLoss, "forward", forward)
+
+
+def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, data_root, monkeypatch):
+    config = tiny(tmp_path, data_root)
+    _nan_after(monkeypatch, 15)
+    with pytest.raises(
+        TrainingError, match=r"non-finite loss or gradient at step 15.*last good checkpoint \(step 10\)"
+    ):
+        train(config)
+    (run_dir,) = list((tmp_path / "runs").iterdir())
+    state = load_checkpoint(run_dir)
+    assert state["step"] == 10
+    assert all(torch.isfinite(v).all() for v in state["policy"].values())
+
+
+def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch):
+    config = tiny(tmp_path, data_root, "optim.skip_nonfinite=100")
+    _nan_after(monkeypatch, 26)  # steps 26..30 are skipped
+    run_dir = train(config)
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    skipped = metrics[(metrics.phase == "train") & (metrics.name == "skipped")].set_index("step").value
+    assert skipped[25] == 0 and skipped[30] == 5
+    assert json.loads((run_dir / "summary.json").read_text())["nonfinite_steps_skipped"] == 5
