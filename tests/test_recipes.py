@@ -467,3 +467,43 @@ def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch):
     skipped = metrics[(metrics.phase == "train") & (metrics.name == "skipped")].set_index("step").value
     assert skipped[25] == 0 and skipped[30] == 5
     assert json.loads((run_dir / "summary.json").read_text())["nonfinite_steps_skipped"] == 5
+
+
+def test_multirun_sweep_over_objectives_and_its_restart_skips_finished_runs(tmp_path, data_root):
+    command = [
+        sys.executable,
+        "-m",
+        "tar_rl",
+        "train",
+        "-m",
+        "objective=uniform,tar",
+        f"data.tasks=[{TASK}]",
+        "data.n_demos=2",
+        "data.workers=1",
+        f"data.root={data_root}",
+        "optim.steps=10",
+        "logging.every=5",
+        "logging.progress=false",
+        "logging.record_weights_at=[]",
+        "eval.rollouts=1",
+        "eval.horizon=10",
+        "eval.workers=1",
+    ]
+    first = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    runs = sorted(p.name.split("-")[0] for p in (tmp_path / "runs").iterdir() if p.is_dir())
+    assert runs == ["tar", "uniform"]
+    for run in (tmp_path / "runs").iterdir():
+        if run.is_dir():
+            assert json.loads((run / "summary.json").read_text())["finished"]
+    again = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert again.stdout.count("finished already") == 2
+
+
+@pytest.mark.gpu
+def test_a_tiny_run_trains_on_cuda_with_amp(tmp_path, data_root):
+    run_dir = train(tiny(tmp_path, data_root, "device=cuda", "optim.amp=true"))
+    state = load_checkpoint(run_dir)
+    assert state["step"] == 30 and all(torch.isfinite(v).all() for v in state["policy"].values())
+    assert json.loads((run_dir / "summary.json").read_text())["finished"]
