@@ -486,6 +486,21 @@ def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> Tens
     return policy.actor.eval()
 
 
+def _with_defaults(saved: dict) -> dict:
+    """A saved config completed with today's defaults for settings added since it was written."""
+    from .config import ObjectiveConfig, TrainConfig
+
+    def merge(base: dict, over: dict) -> dict:
+        out = dict(base)
+        for key, value in over.items():
+            out[key] = merge(base[key], value) if isinstance(value, dict) and isinstance(base.get(key), dict) else value
+        return out
+
+    policy = POLICIES[saved["policy"]["name"]].config() if saved["policy"]["name"] in POLICIES else {}
+    defaults = resolve_config(TrainConfig(objective=ObjectiveConfig(), policy=policy))
+    return merge(defaults, copy.deepcopy(saved))
+
+
 def evaluate_checkpoint(
     path: str | Path,
     tasks: Sequence[str] | None = None,
@@ -506,7 +521,7 @@ def evaluate_checkpoint(
     """
     path = Path(path)
     state = load_checkpoint(path)
-    config = copy.deepcopy(state["config"])
+    config = _with_defaults(state["config"])
     ev = config["eval"]
     for key, value in (("rollouts", rollouts), ("seed", seed), ("horizon", horizon), ("workers", workers)):
         if value is not None:

@@ -17,9 +17,11 @@ MODULES = ["tar_rl.objectives.weighting", "tar_rl.objectives.schedule", "tar_rl.
 def test_root_folders_are_tar_rl_subpackages():
     import tar_rl.collectors
     import tar_rl.objectives
+    import tar_rl.recipes
 
     assert tar_rl.objectives.__file__.replace("\\", "/").endswith("/objectives/__init__.py")
     assert tar_rl.collectors.__file__.replace("\\", "/").endswith("/collectors/__init__.py")
+    assert tar_rl.recipes.__file__.replace("\\", "/").endswith("/recipes/__init__.py")
     assert tar_rl.tar_weights is tar_rl.objectives.tar_weights
 
 
