@@ -9,9 +9,12 @@ before anything runs. Config groups (``group=option`` on the command line):
   :class:`ObjectiveConfig`; the option sets ``objective.name``.
 * ``policy``: one option per registered head (``tar_rl.policies.POLICIES``), each of its own
   config dataclass.
+* ``data`` (``default``, ``mt10``, ``mt50``), ``eval`` (``default``, ``paper``), ``optim``
+  (``default``, ``paper``), ``logging`` (``default``, ``quiet``): presets of one dataclass each
+  (:data:`PRESETS`); their fields are overridden as usual (``data.n_demos=25``).
 
-The other nodes (``data``, ``eval``, ``optim``, ``logging``) and the scalars ``seed``, ``device``,
-``run_dir``, ``runs_root`` are plain fields of :class:`TrainConfig`.
+The scalars ``seed``, ``threads``, ``device``, ``runs_root``, ``run_dir`` are fields of
+:class:`TrainConfig`.
 
 Defaults are the embedded main job, ``tar-rl train`` with no arguments: eight MetaWorld tasks (two
 per difficulty group), 10 demonstrations each, TAR with the paper's schedule shape, 12,000 steps of
@@ -35,6 +38,7 @@ __all__ = [
     "LoggingConfig",
     "ObjectiveConfig",
     "OptimConfig",
+    "PRESETS",
     "TrainConfig",
     "register_configs",
 ]
@@ -192,6 +196,10 @@ def _defaults() -> list[Any]:
         "_self_",
         {"objective": "tar"},
         {"policy": "mlp"},
+        {"data": "default"},
+        {"eval": "default"},
+        {"optim": "default"},
+        {"logging": "default"},
         {"override hydra/job_logging": "none"},
         {"override hydra/hydra_logging": "none"},
     ]
@@ -215,7 +223,9 @@ class TrainConfig:
     Attributes:
         objective: the ``objective`` group (default ``tar``).
         policy: the ``policy`` group (default ``mlp``).
-        data, eval, optim, logging: see their classes.
+        data, eval, optim, logging: groups of presets of :class:`DataConfig`, :class:`EvalConfig`,
+            :class:`OptimConfig`, :class:`LoggingConfig` (see :data:`PRESETS`); ``default`` is the
+            embedded main job.
         seed: seeds the network initialisation and the segment sampler.
         threads: torch intra-op threads on CPU (1 by default: a small policy trains fastest on
             one thread, and the evaluator's worker processes get the other cores); 0: torch's default.
@@ -229,10 +239,10 @@ class TrainConfig:
     defaults: list[Any] = field(default_factory=_defaults)
     objective: Any = MISSING
     policy: Any = MISSING
-    data: DataConfig = field(default_factory=DataConfig)
-    eval: EvalConfig = field(default_factory=EvalConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    data: Any = MISSING
+    eval: Any = MISSING
+    optim: Any = MISSING
+    logging: Any = MISSING
     seed: int = 0
     threads: int = 1
     device: str = "auto"
@@ -242,6 +252,26 @@ class TrainConfig:
 
 
 CONFIG_NAME = "train"
+
+# Presets of the plain nodes, chosen like the groups: `tar-rl train data=mt50 eval=paper optim=paper`.
+PRESETS: dict[str, dict[str, Any]] = {
+    "data": {
+        "default": DataConfig(),
+        "mt10": DataConfig(tasks=["mt10"]),
+        "mt50": DataConfig(tasks=["mt50"]),
+    },
+    "eval": {
+        "default": EvalConfig(),
+        # The paper's protocol (Sec. III-A): 50 rollouts per task, seed 1000, H = 500.
+        "paper": EvalConfig(rollouts=50, seed=1000, horizon=500),
+    },
+    "optim": {
+        "default": OptimConfig(),
+        # The paper's budget: 100K steps (TAR from 20K, ramped over 30K with the default fractions).
+        "paper": OptimConfig(steps=100_000, warmup=1000),
+    },
+    "logging": {"default": LoggingConfig(), "quiet": LoggingConfig(progress=False)},
+}
 
 
 def register_configs() -> None:
@@ -254,3 +284,6 @@ def register_configs() -> None:
         cs.store(group="objective", name=name, node=ObjectiveConfig(name=name))
     for name, spec in POLICIES.items():
         cs.store(group="policy", name=name, node=spec.config(name=name))
+    for group, options in PRESETS.items():
+        for name, node in options.items():
+            cs.store(group=group, name=name, node=node)

@@ -488,7 +488,7 @@ def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> Tens
 
 def _with_defaults(saved: dict) -> dict:
     """A saved config completed with today's defaults for settings added since it was written."""
-    from .config import ObjectiveConfig, TrainConfig
+    from .config import PRESETS, ObjectiveConfig, TrainConfig
 
     def merge(base: dict, over: dict) -> dict:
         out = dict(base)
@@ -497,7 +497,8 @@ def _with_defaults(saved: dict) -> dict:
         return out
 
     policy = POLICIES[saved["policy"]["name"]].config() if saved["policy"]["name"] in POLICIES else {}
-    defaults = resolve_config(TrainConfig(objective=ObjectiveConfig(), policy=policy))
+    presets = {group: options["default"] for group, options in PRESETS.items()}
+    defaults = resolve_config(TrainConfig(objective=ObjectiveConfig(), policy=policy, **presets))
     return merge(defaults, copy.deepcopy(saved))
 
 

@@ -7,6 +7,7 @@ with the plain-Python reference of Eqs. 3-8 (``tests/tar_reference.py``).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -28,7 +29,7 @@ from tar_rl import TARLoss
 from tar_rl.data import SegmentSampler
 from tar_rl.objectives import WEIGHTINGS
 from tar_rl.policies import POLICIES, DataInfo
-from tar_rl.recipes.config import register_configs
+from tar_rl.recipes.config import PRESETS, register_configs
 from tar_rl.recipes.offline_bc import (
     CHECKPOINT,
     ConfigError,
@@ -41,6 +42,7 @@ from tar_rl.recipes.offline_bc import (
     record_weights,
     resolve_config,
     train,
+    validate,
 )
 
 TASK = "reach"
@@ -107,6 +109,20 @@ def test_every_registered_objective_and_policy_builds_from_defaults(objective, p
     assert all(p.grad is not None for p in built.actor.parameters())
     action = built.actor(batch[:, 0])["action"]
     assert action.shape == (3, 4)
+
+
+@pytest.mark.parametrize(("group", "option"), [(g, o) for g, options in PRESETS.items() for o in options])
+def test_every_preset_composes_and_validates(group, option):
+    config = compose_config(f"{group}={option}")
+    assert config[group] == dataclasses.asdict(PRESETS[group][option])
+    validate(config)  # raises ConfigError on a bad preset
+
+
+def test_paper_presets_follow_the_paper():
+    config = compose_config("eval=paper", "optim=paper")
+    assert (config["eval"]["rollouts"], config["eval"]["seed"], config["eval"]["horizon"]) == (50, 1000, 500)
+    loss = make_objective(config, make_policy(config, DataInfo()))
+    assert (config["optim"]["steps"], loss.schedule.start, loss.schedule.ramp) == (100_000, 20_000, 30_000)
 
 
 def test_objective_override_sets_the_weighting_and_its_parameters():
