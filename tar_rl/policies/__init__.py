@@ -1,0 +1,146 @@
+"""Policy heads, chosen by name from a small registry.
+
+A head gives the recipe two things (:class:`Policy`):
+
+* ``actor``: a ``TensorDictModule`` for inference, reading ``observation`` (``[..., 39]``) and
+  ``task_id`` (int64, the index in ``tar_rl.collectors.tasks.TASKS``) and writing ``action``
+  (``[..., 4]``). The evaluator collectors call it on ``[N]`` batches; it must be picklable.
+* ``loss``: a TorchRL ``LossModule`` built with ``reduction="none"`` whose one ``loss_*`` output is
+  the per-step loss ``[B, L]`` or ``[B, L, ...]`` on a ``[B, L]`` segment batch. Heads never
+  average over the segment axis: ``tar_rl.TARLoss`` owns that reduction.
+
+Every head is registered in :data:`POLICIES` with its config dataclass (the fields a recipe may
+set, with defaults) and its builder ``build(config, info) -> Policy``. ``info``
+(:class:`DataInfo`) carries what a head needs from the dataset: dimensions and normalisation
+statistics. The statistics are stored as buffers of the network, so a checkpoint's state dict
+restores them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+from tensordict.nn import TensorDictModule
+from torchrl.objectives import LossModule
+
+from tar_rl.collectors.tasks import TASKS
+
+__all__ = [
+    "POLICIES",
+    "DataInfo",
+    "MLPConfig",
+    "MLPPolicy",
+    "ObsNorm",
+    "Policy",
+    "PolicySpec",
+    "build_policy",
+    "register_policy",
+]
+
+
+@dataclass(frozen=True)
+class DataInfo:
+    """What a head needs to know about the data.
+
+    Attributes:
+        obs_dim: observation size (39 for MetaWorld).
+        action_dim: action size (4).
+        n_tasks: number of task ids (``len(TASKS)``: ids are global, so a policy trained on a few
+            tasks is evaluated with the same ids).
+        obs_mean, obs_std: per-dimension observation statistics of the training data.
+        chunk_horizon: the dataset's ``action_chunk`` horizon ``H``.
+    """
+
+    obs_dim: int = 39
+    action_dim: int = 4
+    n_tasks: int = len(TASKS)
+    obs_mean: tuple[float, ...] | None = None
+    obs_std: tuple[float, ...] | None = None
+    chunk_horizon: int = 1
+
+    @classmethod
+    def from_metadata(cls, metadata: dict) -> DataInfo:
+        """Read the dimensions and observation statistics from a dataset's ``metadata.json``."""
+        stats = metadata["stats"]["observation"]
+        return cls(
+            obs_dim=len(stats["mean"]),
+            action_dim=len(metadata["stats"]["action"]["mean"]),
+            obs_mean=tuple(stats["mean"]),
+            obs_std=tuple(stats["std"]),
+            chunk_horizon=int(metadata["chunk_horizon"]),
+        )
+
+    def to_dict(self) -> dict:
+        """A JSON-serialisable copy (lists for tuples)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DataInfo:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+@dataclass
+class Policy:
+    """A built head.
+
+    Attributes:
+        actor: inference module (``observation``, ``task_id`` -> ``action``).
+        loss: per-step training loss, ``reduction="none"``.
+        keys: the dataset entries the loss reads (the sampler draws only these, plus the mask);
+            ``None``: all.
+        event_valid: for losses with event dims that may be padding (a chunk running past the
+            episode's end), the bool mask entry over them, passed to ``TARLoss.set_keys(event_valid=...)``.
+    """
+
+    actor: TensorDictModule
+    loss: LossModule
+    keys: tuple | None = None
+    event_valid: str | None = None
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """A registered head: its config dataclass and its builder."""
+
+    name: str
+    config: type
+    build: Callable[[object, DataInfo], Policy]
+    description: str = ""
+
+
+POLICIES: dict[str, PolicySpec] = {}
+
+
+def register_policy(spec: PolicySpec) -> PolicySpec:
+    """Add a head to :data:`POLICIES` (a name may be registered once)."""
+    if spec.name in POLICIES:
+        raise ValueError(f"a policy named {spec.name!r} is registered already")
+    POLICIES[spec.name] = spec
+    return spec
+
+
+def build_policy(cfg, info: DataInfo) -> Policy:
+    """Build the head named ``cfg.name`` (``cfg``: its config dataclass or a mapping with the same fields).
+
+    Raises:
+        ValueError: an unknown name (the valid ones are listed) or a bad setting.
+    """
+    is_mapping = isinstance(cfg, Mapping)
+    name = cfg["name"] if is_mapping else cfg.name
+    if name not in POLICIES:
+        raise ValueError(f"unknown policy {name!r}; valid: {sorted(POLICIES)}")
+    spec = POLICIES[name]
+    if not isinstance(cfg, spec.config):
+        values = dict(cfg) if is_mapping else dataclasses.asdict(cfg)
+        known = {f.name for f in dataclasses.fields(spec.config)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"policy {name!r} has no setting(s) {unknown}; valid: {sorted(known)}")
+        cfg = spec.config(**values)
+    return spec.build(cfg, info)
+
+
+# The heads register themselves on import; importing the package registers them all.
+from .mlp import MLPConfig, MLPPolicy, ObsNorm  # noqa: E402

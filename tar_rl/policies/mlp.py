@@ -1,0 +1,110 @@
+"""The ``mlp`` head: a regression MLP on the current observation and task, per-step MSE."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.objectives import BCLoss
+
+from . import DataInfo, Policy, PolicySpec, register_policy
+
+__all__ = ["MLPConfig", "MLPPolicy", "ObsNorm"]
+
+
+class ObsNorm(nn.Module):
+    """``(x - mean) / std`` with statistics held as buffers (std floored at 1e-3: some MetaWorld
+    observation dims are constant within a task)."""
+
+    def __init__(self, dim: int, mean=None, std=None, min_std: float = 1e-3):
+        super().__init__()
+        mean = torch.zeros(dim) if mean is None else torch.as_tensor(mean, dtype=torch.float32)
+        std = torch.ones(dim) if std is None else torch.as_tensor(std, dtype=torch.float32)
+        if mean.shape != (dim,) or std.shape != (dim,):
+            raise ValueError(
+                f"observation statistics must have shape ({dim},), got {tuple(mean.shape)}, {tuple(std.shape)}"
+            )
+        self.register_buffer("mean", mean.clone())
+        self.register_buffer("std", std.clamp_min(min_std))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean) / self.std
+
+
+@dataclass
+class MLPConfig:
+    """The regression MLP head: normalised observation (+ task) -> action.
+
+    Attributes:
+        name: registry name.
+        hidden: hidden layer widths.
+        task_conditioning: ``embedding`` (learned, ``task_dim`` wide), ``onehot`` or ``none``.
+        task_dim: width of the learned task embedding.
+        normalize_obs: standardise observations with the training data's statistics.
+    """
+
+    name: str = "mlp"
+    hidden: list[int] = field(default_factory=lambda: [256, 256, 256])
+    task_conditioning: str = "embedding"
+    task_dim: int = 32
+    normalize_obs: bool = True
+
+
+_TASK_CONDITIONING = ("embedding", "onehot", "none")
+
+
+class MLPPolicy(nn.Module):
+    """Plain tensor module: ``(observation [..., D], task_id [...]) -> action [..., A]``.
+
+    Works on any leading shape (``[N]`` at inference, ``[B, L]`` in training), step by step:
+    nothing mixes the time axis.
+    """
+
+    def __init__(self, cfg: MLPConfig, info: DataInfo):
+        super().__init__()
+        if cfg.task_conditioning not in _TASK_CONDITIONING:
+            raise ValueError(
+                f"policy.task_conditioning must be one of {list(_TASK_CONDITIONING)}, got {cfg.task_conditioning!r}"
+            )
+        if not cfg.hidden or any(int(h) < 1 for h in cfg.hidden):
+            raise ValueError(f"policy.hidden must be a non-empty list of positive widths, got {list(cfg.hidden)}")
+        if cfg.task_conditioning == "embedding" and cfg.task_dim < 1:
+            raise ValueError(f"policy.task_dim must be >= 1, got {cfg.task_dim}")
+        self.conditioning = cfg.task_conditioning
+        self.n_tasks = info.n_tasks
+        if cfg.normalize_obs:
+            self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std)
+        else:
+            self.norm = nn.Identity()
+        task_width = {"embedding": cfg.task_dim, "onehot": info.n_tasks, "none": 0}[self.conditioning]
+        self.task_embedding = nn.Embedding(info.n_tasks, cfg.task_dim) if self.conditioning == "embedding" else None
+        layers: list[nn.Module] = []
+        width = info.obs_dim + task_width
+        for h in cfg.hidden:
+            layers += [nn.Linear(width, int(h)), nn.ReLU()]
+            width = int(h)
+        layers.append(nn.Linear(width, info.action_dim))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, observation: torch.Tensor, task_id: torch.Tensor) -> torch.Tensor:
+        x = self.norm(observation)
+        if self.conditioning == "embedding":
+            x = torch.cat([x, self.task_embedding(task_id)], dim=-1)
+        elif self.conditioning == "onehot":
+            x = torch.cat([x, nn.functional.one_hot(task_id, self.n_tasks).to(x.dtype)], dim=-1)
+        return self.net(x)
+
+
+def _build_mlp(cfg: MLPConfig, info: DataInfo) -> Policy:
+    actor = TensorDictModule(MLPPolicy(cfg, info), in_keys=["observation", "task_id"], out_keys=["action"])
+    # BCLoss with reduction="none" keeps [B, L, A]; TARLoss averages the action dim per step.
+    with warnings.catch_warnings():  # torchrl 0.14.1's BCLoss warns about its own annotations
+        warnings.filterwarnings("ignore", "The name target_actor_network_params", UserWarning)
+        loss = BCLoss(actor, loss_function="mse", reduction="none")
+    return Policy(actor=actor, loss=loss, keys=("observation", "task_id", "action"))
+
+
+register_policy(PolicySpec("mlp", MLPConfig, _build_mlp, "regression MLP on the current observation and task, MSE"))
