@@ -33,12 +33,12 @@ from tar_rl.policies import POLICIES
 
 __all__ = [
     "DEFAULT_TASKS",
+    "PRESETS",
     "DataConfig",
     "EvalConfig",
     "LoggingConfig",
     "ObjectiveConfig",
     "OptimConfig",
-    "PRESETS",
     "TrainConfig",
     "register_configs",
 ]

@@ -92,14 +92,20 @@ def test_every_registered_objective_and_policy_builds_from_defaults(objective, p
     config = compose_config(f"objective={objective}", f"policy={policy}")
     assert config["objective"]["name"] == objective and config["policy"]["name"] == policy
     torch.manual_seed(0)
-    built = make_policy(config, DataInfo())
+    built = make_policy(config, DataInfo(chunk_horizon=8))
     loss = make_objective(config, built)
+    chunk_valid = torch.ones(3, 5, 8, dtype=torch.bool)
+    chunk_valid[:, -1, 3:] = False  # chunks running past the end of their episode
     batch = TensorDict(
         {
             "observation": torch.randn(3, 5, 39),
             "task_id": torch.randint(0, 50, (3, 5)),
             "action": torch.rand(3, 5, 4) * 2 - 1,
-            ("collector", "mask"): torch.ones(3, 5, dtype=torch.bool),
+            "action_chunk": torch.rand(3, 5, 8, 4) * 2 - 1,
+            "action_chunk_valid": chunk_valid,
+            "episode": torch.arange(3)[:, None].expand(3, 5).clone(),
+            "step": torch.arange(5).expand(3, 5).clone(),
+            ("collector", "mask"): torch.tensor([[True] * 5, [True] * 5, [True] * 3 + [False] * 2]),
         },
         [3, 5],
     )
@@ -107,8 +113,9 @@ def test_every_registered_objective_and_policy_builds_from_defaults(objective, p
     assert out["loss_tar"].shape == () and torch.isfinite(out["loss_tar"])
     out["loss_tar"].backward()
     assert all(p.grad is not None for p in built.actor.parameters())
-    action = built.actor(batch[:, 0])["action"]
-    assert action.shape == (3, 4)
+    inference = batch[:, 0].select("observation", "task_id").set("is_init", torch.ones(3, 1, dtype=torch.bool))
+    action = built.actor.eval()(inference)["action"]
+    assert action.shape == (3, 4) and torch.isfinite(action).all()
 
 
 @pytest.mark.parametrize(("group", "option"), [(g, o) for g, options in PRESETS.items() for o in options])
