@@ -42,7 +42,7 @@ import numpy as np
 import pandas as pd
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
@@ -305,11 +305,11 @@ def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.o
 
 def make_evaluator(
     config: dict, tasks: Sequence[str], progress: bool = True
-) -> Callable[[TensorDictModule], pd.DataFrame]:
+) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
     """A function running the evaluator collectors on a policy, with ``eval``'s settings."""
     ev = config["eval"]
 
-    def run(actor: TensorDictModule) -> pd.DataFrame:
+    def run(actor: TensorDictModuleBase) -> pd.DataFrame:
         return evaluate(
             actor,
             list(tasks),
@@ -379,11 +379,9 @@ def _rollout_records(step: int, df: pd.DataFrame) -> list[dict]:
     ]
 
 
-def _eval_actor(actor: TensorDictModule, ema) -> TensorDictModule:
+def _eval_actor(actor: TensorDictModuleBase, ema) -> TensorDictModuleBase:
     """A CPU copy of the policy for the evaluator's worker processes (the EMA weights if given)."""
-    module = ema.module if ema is not None else actor.module
-    module = copy.deepcopy(module).to("cpu").eval()
-    return TensorDictModule(module, in_keys=list(actor.in_keys), out_keys=list(actor.out_keys))
+    return copy.deepcopy(ema.module if ema is not None else actor).to("cpu").eval()
 
 
 def record_weights(
@@ -472,13 +470,13 @@ def load_checkpoint(path: str | Path) -> dict:
     return state
 
 
-def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModule:
+def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModuleBase:
     """Rebuild the saved policy (EMA weights if the run kept them) for inference, on CPU."""
     config = state["config"]
     policy = make_policy(config, DataInfo.from_dict(state["data_info"]))
     weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
     try:
-        policy.actor.module.load_state_dict(weights)
+        policy.actor.load_state_dict(weights)
     except RuntimeError as err:
         raise ValueError(
             f"{path}: the saved weights do not fit the policy {config['policy']['name']!r} built from its config: {err}"
@@ -607,7 +605,7 @@ def train(cfg: Any) -> Path:
     if opt_cfg["ema"] > 0:
         from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-        ema = AveragedModel(policy.actor.module, multi_avg_fn=get_ema_multi_avg_fn(opt_cfg["ema"]), use_buffers=True)
+        ema = AveragedModel(policy.actor, multi_avg_fn=get_ema_multi_avg_fn(opt_cfg["ema"]), use_buffers=True)
     generator = torch.Generator().manual_seed(config["seed"])
     sampler = dataset.segments(
         config["data"]["batch_segments"], config["data"]["slice_len"], keys=policy.keys, generator=generator
@@ -642,7 +640,7 @@ def train(cfg: Any) -> Path:
             "finished": finished,
             "config": config,
             "data_info": info.to_dict(),
-            "policy": policy.actor.module.state_dict(),
+            "policy": policy.actor.state_dict(),
             "ema_policy": ema.module.state_dict() if ema is not None else None,
             "objective": objective.state_dict(),
             "optimizer": optimizer.state_dict(),
@@ -703,7 +701,7 @@ def train(cfg: Any) -> Path:
                 optimizer.step()
                 scheduler.step()
                 if ema is not None:
-                    ema.update_parameters(policy.actor.module)
+                    ema.update_parameters(policy.actor)
                 for n in names:
                     acc[n] += float(out[n].detach())
                 acc["grad_norm"] += float(grad_norm)

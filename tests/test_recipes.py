@@ -328,8 +328,8 @@ def test_training_changes_the_policy_that_is_evaluated(smoke_run, data_root):
     state = load_checkpoint(run_dir)
     torch.manual_seed(config["seed"])
     fresh = make_policy(config, DataInfo.from_dict(state["data_info"]))
-    for name, value in fresh.actor.module.state_dict().items():
-        if name.startswith("norm."):
+    for name, value in fresh.actor.state_dict().items():
+        if name.startswith("module.norm."):
             assert torch.equal(value, state["policy"][name])  # the dataset statistics
         else:
             assert not torch.equal(value, state["policy"][name]), name  # trained
