@@ -21,6 +21,7 @@ from .weighting import (
     shuffle_weights,
     tar_weights,
     uniform_weights,
+    window_weights,
 )
 
 __all__ = [
@@ -44,4 +45,5 @@ __all__ = [
     "shuffle_weights",
     "tar_weights",
     "uniform_weights",
+    "window_weights",
 ]

@@ -44,6 +44,7 @@ __all__ = [
     "shuffle_weights",
     "tar_weights",
     "uniform_weights",
+    "window_weights",
 ]
 
 #: Softmax temperature on the within-segment z-scores (Eq. 6). With ``gamma=1`` a step one
@@ -271,6 +272,39 @@ def tar_weights(
     params = TARParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
     check_step_losses(losses, valid)
     return _weights_from_scores(losses.detach(), valid, params, mix)
+
+
+def window_weights(losses: Tensor, slice_len: int, **params) -> Tensor:
+    """TAR's weight of each step of a whole trajectory, averaged over the windows that contain it.
+
+    Training draws segments of ``slice_len`` steps from a trajectory; a step's weight depends on
+    the segment around it. This gives, for each step ``t`` of a ``[T]`` trajectory of per-step
+    losses, the mean of :func:`tar_weights` at ``t`` over every window of ``slice_len``
+    consecutive steps that contains ``t`` (all steps valid): the weight the step gets on average
+    when a training segment contains it (the paper's Fig. 5 plots this kind of curve). A
+    trajectory shorter than ``slice_len`` is one window.
+
+    Args:
+        losses: ``[T]`` per-step losses (finite).
+        slice_len: the training segment length ``L`` (>= 1).
+        **params: ``gamma``, ``w_max``, ``eps``, ``cap``, ``mix`` as for :func:`tar_weights`.
+
+    Returns:
+        ``[T]`` weights in ``losses``' float dtype.
+    """
+    if losses.ndim != 1 or losses.shape[0] == 0:
+        raise ValueError(f"losses must be a non-empty [T] tensor, got shape {list(losses.shape)}")
+    if slice_len < 1:
+        raise ValueError(f"slice_len must be >= 1, got {slice_len}")
+    n = losses.shape[0]
+    width = min(slice_len, n)
+    windows = losses.detach().unfold(0, width, 1)  # [n - width + 1, width]
+    w = tar_weights(windows, torch.ones_like(windows, dtype=torch.bool), **params)
+    starts = torch.arange(windows.shape[0], device=losses.device)
+    index = (starts[:, None] + torch.arange(width, device=losses.device)).reshape(-1)
+    total = torch.zeros(n, dtype=w.dtype, device=losses.device).index_add_(0, index, w.reshape(-1))
+    count = torch.zeros(n, dtype=w.dtype, device=losses.device).index_add_(0, index, torch.ones_like(w).reshape(-1))
+    return total / count
 
 
 def uniform_weights(losses: Tensor, valid: Tensor) -> Tensor:

@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import hashlib
-import json
 import math
 import sys
 import time
@@ -47,41 +45,44 @@ from tensordict.nn import TensorDictModuleBase
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
 from tar_rl.data import DemoDataset, build_dataset
-from tar_rl.io import atomic_write, save_torch_atomic, write_csv_atomic, write_json_atomic
-from tar_rl.metrics import as_percent, summarize
-from tar_rl.objectives import WEIGHTINGS, MixSchedule, TARLoss, tar_weights
+from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
+from tar_rl.metrics import summarize
+from tar_rl.objectives import WEIGHTINGS, MixSchedule, TARLoss, window_weights
 from tar_rl.policies import POLICIES, DataInfo, Policy, build_policy
+from tar_rl.runs import (
+    CHECKPOINT,
+    RunLogs,
+    config_differences,
+    git_commit,
+    identity,
+    json_metric,
+    last_metric,
+    load_checkpoint,
+    print_table,
+    rollout_records,
+    run_name,
+    save_checkpoint,
+    summary_rows,
+)
 
 from .config import CONFIG_NAME, register_configs
 
 __all__ = [
-    "CHECKPOINT",
     "ConfigError",
     "TrainingError",
+    "evaluate_checkpoint",
     "hydra_main",
-    "load_checkpoint",
     "make_dataset",
     "make_evaluator",
     "make_objective",
     "make_optimizer",
     "make_policy",
+    "policy_from_checkpoint",
+    "record_weights",
     "resolve_config",
-    "run_name",
     "train",
+    "validate",
 ]
-
-CHECKPOINT = "checkpoint.pt"
-CHECKPOINT_FORMAT = 1
-# Settings that do not change what a run computes: left out of the run's identity (its directory
-# name and the check made when resuming).
-_NOT_IDENTITY = (
-    ("data", "workers"),
-    ("data", "root"),
-    ("eval", "workers"),
-    ("logging", "progress"),
-    ("runs_root",),
-    ("run_dir",),
-)
 
 
 class ConfigError(ValueError):
@@ -110,31 +111,6 @@ def resolve_config(cfg: Any) -> dict:
     config.pop("defaults", None)
     config.pop("hydra", None)
     return config
-
-
-def _identity(config: dict) -> dict:
-    ident = copy.deepcopy(config)
-    for path in _NOT_IDENTITY:
-        node = ident
-        for key in path[:-1]:
-            node = node.get(key, {})
-        node.pop(path[-1], None)
-    return ident
-
-
-def run_name(config: dict) -> str:
-    """``<objective>-<policy>-s<seed>-<hash>``, the hash over the settings that change the result."""
-    digest = hashlib.sha256(json.dumps(_identity(config), sort_keys=True).encode()).hexdigest()[:8]
-    return f"{config['objective']['name']}-{config['policy']['name']}-s{config['seed']}-{digest}"
-
-
-def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
-    if isinstance(old, dict) and isinstance(new, dict):
-        out = []
-        for key in sorted(set(old) | set(new), key=str):
-            out += _differences(old.get(key, "<absent>"), new.get(key, "<absent>"), f"{prefix}{key}.")
-        return out
-    return [] if old == new else [f"{prefix[:-1]}: {old!r} -> {new!r}"]
 
 
 def _check_int(name: str, value, low: int, high: int | None = None) -> None:
@@ -326,59 +302,6 @@ def make_evaluator(
 # -- Run state ---------------------------------------------------------------------------------
 
 
-def _summary_rows(step: int, table: pd.DataFrame) -> list[tuple]:
-    rows = []
-    for rec in table[table["level"] != "task"].itertuples():
-        for metric in ("success", "fast20", "neps"):
-            rows.append((step, "eval", f"{metric}/{rec.name}", float(getattr(rec, metric))))
-    return rows
-
-
-def _json_metric(value: float):
-    return "inf" if math.isinf(value) else value
-
-
-def print_table(table: pd.DataFrame, file=None) -> None:
-    """Success, 100 x Fast20 and 100 x NEPS per difficulty group and overall, as the paper reports them."""
-    pct = as_percent(table[table["level"] != "task"])
-    lines = [f"{'group':<11}{'tasks':>6}{'rollouts':>10}{'success %':>11}{'Fast20':>9}{'NEPS':>9}"]
-    for rec in pct.itertuples():
-        lines.append(
-            f"{rec.name:<11}{rec.n_tasks:>6}{rec.n_rollouts:>10}{rec.success:>11.1f}{rec.fast20:>9.1f}{rec.neps:>9.1f}"
-        )
-    print("\n".join(lines), file=file or sys.stdout)
-
-
-class _Logs:
-    """Everything a run logs, kept in memory (and in the checkpoint) and written out atomically."""
-
-    def __init__(self, run_dir: Path, metrics=None, rollouts=None, weights=None):
-        self.run_dir = run_dir
-        self.metrics: list[tuple] = list(metrics or [])
-        self.rollouts: list[dict] = list(rollouts or [])
-        self.weights: list[tuple] = list(weights or [])
-
-    def state(self) -> dict:
-        return {"metrics": self.metrics, "rollouts": self.rollouts, "weights": self.weights}
-
-    def write(self) -> None:
-        write_csv_atomic(
-            pd.DataFrame(self.metrics, columns=["step", "phase", "name", "value"]), self.run_dir / "metrics.csv"
-        )
-        if self.rollouts:
-            write_csv_atomic(pd.DataFrame(self.rollouts), self.run_dir / "eval_rollouts.csv")
-        if self.weights:
-            columns = ["step", "task", "episode", "t", "loss", "weight", "gripper"]
-            write_csv_atomic(pd.DataFrame(self.weights, columns=columns), self.run_dir / "weights.csv")
-
-
-def _rollout_records(step: int, df: pd.DataFrame) -> list[dict]:
-    df = df.assign(step=step)
-    return [
-        {k: (v.item() if isinstance(v, np.generic) else v) for k, v in rec.items()} for rec in df.to_dict("records")
-    ]
-
-
 def _eval_actor(actor: TensorDictModuleBase, ema) -> TensorDictModuleBase:
     """A CPU copy of the policy for the evaluator's worker processes (the EMA weights if given)."""
     return copy.deepcopy(ema.module if ema is not None else actor).to("cpu").eval()
@@ -387,43 +310,26 @@ def _eval_actor(actor: TensorDictModuleBase, ema) -> TensorDictModuleBase:
 def record_weights(
     objective: TARLoss, episodes: list[tuple[str, int, TensorDict]], slice_len: int, step: int
 ) -> list[tuple]:
-    """Per-step loss and TAR weight along whole demonstrations, for the paper's Fig. 5.
+    """Per-step loss and TAR weight along whole demonstrations (rows of ``weights.csv``, the paper's Fig. 5).
 
-    The loss is the head's per-step loss at the current weights. The weight of a step is TAR's
-    weight (the objective's gamma, w_max, eps and cap, at full strength whatever the run's
-    weighting and schedule) averaged over every ``slice_len``-step window of the episode that
-    contains the step: the weight the step receives on average when training samples a segment
-    containing it. An episode shorter than ``slice_len`` is one window.
+    The loss is the head's per-step loss at the current weights; the weight is
+    :func:`tar_rl.objectives.window_weights` of those losses with the objective's gamma, w_max,
+    eps and cap at full strength, whatever the run's own weighting and schedule.
     """
     rows = []
     was_training = objective.training
     objective.eval()
-    params = objective.tar_params
+    p = objective.tar_params
     try:
         with torch.no_grad():
             for task, episode, td in episodes:
                 losses = objective.step_losses(td.unsqueeze(0)).squeeze(0).float().cpu()
-                n = losses.shape[0]
-                width = min(slice_len, n)
-                windows = losses.unfold(0, width, 1)  # [n - width + 1, width]
-                w = tar_weights(
-                    windows,
-                    torch.ones_like(windows, dtype=torch.bool),
-                    gamma=params.gamma,
-                    w_max=params.w_max,
-                    eps=params.eps,
-                    cap=params.cap,
-                )
-                total = torch.zeros(n)
-                count = torch.zeros(n)
-                for offset in range(width):
-                    idx = torch.arange(windows.shape[0]) + offset
-                    total.index_add_(0, idx, w[:, offset])
-                    count.index_add_(0, idx, torch.ones(windows.shape[0]))
-                weight = total / count
+                weight = window_weights(losses, slice_len, gamma=p.gamma, w_max=p.w_max, eps=p.eps, cap=p.cap)
                 gripper = td["action"][..., -1].float().cpu()
-                for t in range(n):
-                    rows.append((step, task, episode, t, float(losses[t]), float(weight[t]), float(gripper[t])))
+                rows += [
+                    (step, task, episode, t, float(losses[t]), float(weight[t]), float(gripper[t]))
+                    for t in range(losses.shape[0])
+                ]
     finally:
         objective.train(was_training)
     return rows
@@ -447,27 +353,6 @@ def _demo_episodes(
 
 
 # -- Checkpoints -------------------------------------------------------------------------------
-
-
-def load_checkpoint(path: str | Path) -> dict:
-    """Read a checkpoint written by :func:`train`.
-
-    Raises:
-        FileNotFoundError: no file at ``path`` (a run directory is accepted and its checkpoint read).
-        ValueError: the file is not a tar-rl checkpoint of a known format.
-    """
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise ValueError(f"{path} is not a readable tar-rl checkpoint: {err}") from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not a tar-rl checkpoint of format {CHECKPOINT_FORMAT}")
-    return state
 
 
 def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModuleBase:
@@ -557,7 +442,7 @@ def _check_resumable(run_dir: Path, config: dict) -> dict | None:
     if not path.exists():
         return None
     state = load_checkpoint(path)
-    diff = _differences(_identity(state["config"]), _identity(config))
+    diff = config_differences(identity(state["config"]), identity(config))
     if diff:
         raise ConfigError(
             f"{run_dir} holds a run with other settings ({'; '.join(diff)}); choose another run_dir or remove it"
@@ -617,7 +502,7 @@ def train(cfg: Any) -> Path:
         _demo_episodes(dataset, tasks["train"], log_cfg["record_episodes"], policy.keys, device) if record_at else []
     )
 
-    logs = _Logs(run_dir)
+    logs = RunLogs(run_dir)
     start, skipped, train_seconds = 0, 0, 0.0
     if resume is not None:
         _check_data_info(resume, info, run_dir)
@@ -628,14 +513,13 @@ def train(cfg: Any) -> Path:
             ema.load_state_dict(resume["ema"])
         generator.set_state(resume["sampler_rng"])
         torch.set_rng_state(resume["torch_rng"])
-        logs = _Logs(run_dir, **resume["logs"])
+        logs = RunLogs(run_dir, **resume["logs"])
         start, skipped, train_seconds = resume["step"], resume["skipped"], resume["train_seconds"]
         print(f"{run_dir}: resuming at step {start} of {steps}")
     logs.write()
 
     def checkpoint(step: int, finished: bool = False) -> None:
         state = {
-            "format": CHECKPOINT_FORMAT,
             "step": step,
             "finished": finished,
             "config": config,
@@ -652,13 +536,13 @@ def train(cfg: Any) -> Path:
             "skipped": skipped,
             "train_seconds": train_seconds,
         }
-        save_torch_atomic(state, run_dir / CHECKPOINT)
+        save_checkpoint(state, run_dir)
 
     def run_eval(step: int) -> pd.DataFrame:
         rollouts = evaluator(_eval_actor(policy.actor, ema if config["eval"]["use_ema"] else None))
         table = summarize(rollouts)
-        logs.rollouts += _rollout_records(step, rollouts)
-        logs.metrics += _summary_rows(step, table)
+        logs.rollouts += rollout_records(step, rollouts)
+        logs.metrics += summary_rows(step, table)
         return table
 
     from tqdm import tqdm
@@ -749,14 +633,14 @@ def train(cfg: Any) -> Path:
         "steps": steps,
         "finished": True,
         "final": [
-            {**rec, "neps": _json_metric(rec["neps"])} for rec in table[table["level"] != "task"].to_dict("records")
+            {**rec, "neps": json_metric(rec["neps"])} for rec in table[table["level"] != "task"].to_dict("records")
         ],
-        "final_train_loss": _last_metric(logs.metrics, "loss"),
+        "final_train_loss": last_metric(logs.metrics, "loss"),
         "nonfinite_steps_skipped": skipped,
         "train_seconds": train_seconds,
         "final_eval_seconds": eval_seconds,
         "config": config,
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         "versions": {"torch": torch.__version__, **dataset.metadata["versions"]},
     }
     write_json_atomic(summary, summary_path)
@@ -768,23 +652,6 @@ def train(cfg: Any) -> Path:
 def _check_data_info(state: dict, info: DataInfo, run_dir: Path) -> None:
     if DataInfo.from_dict(state["data_info"]) != info:
         raise ConfigError(f"{run_dir}: the dataset differs from the one the checkpoint was trained on")
-
-
-def _last_metric(rows: list[tuple], name: str) -> float | None:
-    values = [r[3] for r in rows if r[1] == "train" and r[2] == name]
-    return values[-1] if values else None
-
-
-def _git_commit() -> str | None:
-    import subprocess
-
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() or None if out.returncode == 0 else None
 
 
 # -- Hydra entry point -------------------------------------------------------------------------

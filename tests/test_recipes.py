@@ -31,11 +31,9 @@ from tar_rl.objectives import WEIGHTINGS
 from tar_rl.policies import POLICIES, DataInfo
 from tar_rl.recipes.config import PRESETS, register_configs
 from tar_rl.recipes.offline_bc import (
-    CHECKPOINT,
     ConfigError,
     TrainingError,
     evaluate_checkpoint,
-    load_checkpoint,
     make_objective,
     make_optimizer,
     make_policy,
@@ -44,6 +42,7 @@ from tar_rl.recipes.offline_bc import (
     train,
     validate,
 )
+from tar_rl.runs import CHECKPOINT, load_checkpoint
 
 TASK = "reach"
 

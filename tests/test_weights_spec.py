@@ -29,6 +29,7 @@ from tar_rl.objectives.weighting import (
     shuffle_weights,
     tar_weights,
     uniform_weights,
+    window_weights,
 )
 
 SQRT2 = math.sqrt(2.0)
@@ -739,3 +740,32 @@ class TestMixSchedule:
             mix_at(5, start=0, ramp=10, shape="Linear")
         with pytest.raises(ValueError, match=r"ramp must be an int >= 0"):
             mix_at(5, start=0, ramp=-10)
+
+
+class TestWindowWeights:
+    """``window_weights``: TAR's weight per step of a whole trajectory, averaged over its L-step windows."""
+
+    def test_a_trajectory_shorter_than_the_window_is_one_segment(self):
+        losses = [0.3, 0.1, 0.7]
+        got = window_weights(torch.tensor(losses, dtype=torch.float64), slice_len=8)
+        assert got.tolist() == pytest.approx(ref_tar_segment(losses, [True] * 3), rel=1e-9)
+
+    def test_window_of_one_step_gives_ones(self):
+        got = window_weights(torch.tensor([0.3, 0.1, 0.7]), slice_len=1)
+        assert got.tolist() == [1.0, 1.0, 1.0]
+
+    def test_two_windows_by_hand(self):
+        losses = [0.0, 1.0, 0.0]
+        # Windows [0, 1] and [1, 0]: each gives the high step e^1/(e^1+e^-1)*2 before the cap.
+        first = ref_tar_segment(losses[:2], [True, True], w_max=10.0)
+        second = ref_tar_segment(losses[1:], [True, True], w_max=10.0)
+        got = window_weights(torch.tensor(losses, dtype=torch.float64), slice_len=2, w_max=10.0)
+        assert got.tolist() == pytest.approx([first[0], (first[1] + second[0]) / 2, second[1]], rel=1e-9)
+        assert got[1] == pytest.approx(2 * math.e / (math.e + 1 / math.e), rel=1e-6)
+
+    @pytest.mark.parametrize(
+        ("losses", "slice_len"), [(torch.zeros(0), 4), (torch.zeros(2, 3), 4), (torch.zeros(3), 0)]
+    )
+    def test_bad_input(self, losses, slice_len):
+        with pytest.raises(ValueError):
+            window_weights(losses, slice_len)

@@ -1,0 +1,193 @@
+"""Run directories: identity, logs, checkpoints and the printed results table.
+
+A run directory holds ``config.yaml``, ``checkpoint.pt``, ``metrics.csv``, ``eval_rollouts.csv``,
+``weights.csv`` and ``summary.json`` (see ``recipes/offline_bc.py`` for what writes them). A run is
+identified by the settings that change what it computes (:func:`identity`), which names its
+directory (:func:`run_name`) and decides whether a checkpoint may be resumed with a config.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from tar_rl.io import save_torch_atomic, write_csv_atomic
+from tar_rl.metrics import as_percent
+
+__all__ = [
+    "CHECKPOINT",
+    "CHECKPOINT_FORMAT",
+    "NOT_IDENTITY",
+    "WEIGHT_COLUMNS",
+    "RunLogs",
+    "config_differences",
+    "git_commit",
+    "identity",
+    "json_metric",
+    "last_metric",
+    "load_checkpoint",
+    "print_table",
+    "rollout_records",
+    "run_name",
+    "save_checkpoint",
+    "summary_rows",
+]
+
+WEIGHT_COLUMNS = ["step", "task", "episode", "t", "loss", "weight", "gripper"]
+CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_FORMAT = 1
+# Settings that do not change what a run computes: left out of the run's identity (its directory
+# name and the check made when resuming).
+NOT_IDENTITY = (
+    ("data", "workers"),
+    ("data", "root"),
+    ("eval", "workers"),
+    ("logging", "progress"),
+    ("threads",),
+    ("runs_root",),
+    ("run_dir",),
+)
+
+
+def identity(config: dict) -> dict:
+    """The settings that determine what a run computes: ``config`` without :data:`NOT_IDENTITY`."""
+    ident = copy.deepcopy(config)
+    for path in NOT_IDENTITY:
+        node = ident
+        for key in path[:-1]:
+            node = node.get(key, {})
+        node.pop(path[-1], None)
+    return ident
+
+
+def run_name(config: dict) -> str:
+    """``<objective>-<policy>-s<seed>-<hash>``, the hash over the settings that change the result."""
+    digest = hashlib.sha256(json.dumps(identity(config), sort_keys=True).encode()).hexdigest()[:8]
+    return f"{config['objective']['name']}-{config['policy']['name']}-s{config['seed']}-{digest}"
+
+
+def config_differences(old: Any, new: Any, prefix: str = "") -> list[str]:
+    """``key.path: old -> new`` for every setting that differs between two nested config dicts."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for key in sorted(set(old) | set(new), key=str):
+            out += config_differences(old.get(key, "<absent>"), new.get(key, "<absent>"), f"{prefix}{key}.")
+        return out
+    return [] if old == new else [f"{prefix[:-1]}: {old!r} -> {new!r}"]
+
+
+def summary_rows(step: int, table: pd.DataFrame) -> list[tuple]:
+    """``metrics.csv`` rows (step, "eval", "<metric>/<group>", value) of a ``summarize`` table's groups and overall."""
+    rows = []
+    for rec in table[table["level"] != "task"].itertuples():
+        for metric in ("success", "fast20", "neps"):
+            rows.append((step, "eval", f"{metric}/{rec.name}", float(getattr(rec, metric))))
+    return rows
+
+
+def json_metric(value: float):
+    """A metric for JSON: an infinite NEPS becomes the string ``"inf"``."""
+    return "inf" if math.isinf(value) else value
+
+
+def print_table(table: pd.DataFrame, file=None) -> None:
+    """Success, 100 x Fast20 and 100 x NEPS per difficulty group and overall, as the paper reports them."""
+    pct = as_percent(table[table["level"] != "task"])
+    lines = [f"{'group':<11}{'tasks':>6}{'rollouts':>10}{'success %':>11}{'Fast20':>9}{'NEPS':>9}"]
+    for rec in pct.itertuples():
+        lines.append(
+            f"{rec.name:<11}{rec.n_tasks:>6}{rec.n_rollouts:>10}{rec.success:>11.1f}{rec.fast20:>9.1f}{rec.neps:>9.1f}"
+        )
+    print("\n".join(lines), file=file or sys.stdout)
+
+
+class RunLogs:
+    """Everything a run logs, kept in memory (and in the checkpoint) and written out atomically.
+
+    Files (in ``run_dir``): ``metrics.csv`` (step, phase, name, value), ``eval_rollouts.csv`` (the
+    evaluator's columns and step), ``weights.csv`` (:data:`WEIGHT_COLUMNS`).
+    """
+
+    def __init__(self, run_dir: Path, metrics=None, rollouts=None, weights=None):
+        self.run_dir = run_dir
+        self.metrics: list[tuple] = list(metrics or [])
+        self.rollouts: list[dict] = list(rollouts or [])
+        self.weights: list[tuple] = list(weights or [])
+
+    def state(self) -> dict:
+        return {"metrics": self.metrics, "rollouts": self.rollouts, "weights": self.weights}
+
+    def write(self) -> None:
+        write_csv_atomic(
+            pd.DataFrame(self.metrics, columns=["step", "phase", "name", "value"]), self.run_dir / "metrics.csv"
+        )
+        if self.rollouts:
+            write_csv_atomic(pd.DataFrame(self.rollouts), self.run_dir / "eval_rollouts.csv")
+        if self.weights:
+            write_csv_atomic(pd.DataFrame(self.weights, columns=WEIGHT_COLUMNS), self.run_dir / "weights.csv")
+
+
+def rollout_records(step: int, df: pd.DataFrame) -> list[dict]:
+    """Rows of an evaluator table with the training ``step`` added, as plain Python values."""
+    df = df.assign(step=step)
+    return [
+        {k: (v.item() if isinstance(v, np.generic) else v) for k, v in rec.items()} for rec in df.to_dict("records")
+    ]
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Raises:
+        FileNotFoundError: no file at ``path`` (a run directory is accepted and its checkpoint read).
+        ValueError: the file is not a tar-rl checkpoint of a known format.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise ValueError(f"{path} is not a readable tar-rl checkpoint: {err}") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a tar-rl checkpoint of format {CHECKPOINT_FORMAT}")
+    return state
+
+
+def save_checkpoint(state: dict, run_dir: str | Path) -> Path:
+    """Write ``state`` (plus the format tag) as ``run_dir/checkpoint.pt`` atomically.
+
+    ``state`` must hold only what ``torch.load(weights_only=True)`` reads back: tensors, numbers,
+    strings, lists, tuples and dicts of them.
+    """
+    return save_torch_atomic({**state, "format": CHECKPOINT_FORMAT}, Path(run_dir) / CHECKPOINT)
+
+
+def last_metric(rows: list[tuple], name: str) -> float | None:
+    """The last logged value of the training metric ``name`` (None if never logged)."""
+    values = [r[3] for r in rows if r[1] == "train" and r[2] == name]
+    return values[-1] if values else None
+
+
+def git_commit() -> str | None:
+    """The commit of the checkout this code runs from (None outside git)."""
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
