@@ -902,7 +902,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "runs", nargs="+", metavar="RUN_DIR", help="run directories, or folders holding run directories (a sweep)"
     )
-    parser.add_argument("--out", help="folder for comparison.csv and the figures (default: ./report)")
+    parser.add_argument("--out", metavar="DIR", help="folder for comparison.csv and the figures (default: ./report)")
     return parser
 
 
