@@ -29,7 +29,6 @@ import os
 import re
 import statistics
 import sys
-import tempfile
 import textwrap
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -39,7 +38,7 @@ from typing import IO, Any
 import numpy as np
 import pandas as pd
 
-from tar_rl.io import write_csv_atomic
+from tar_rl.io import atomic_write, write_csv_atomic
 from tar_rl.metrics import DEFAULT_GROUP_ORDER, METRIC_COLUMNS, REQUIRED_COLUMNS, as_percent, summarize
 
 __all__ = [
@@ -583,21 +582,7 @@ def _save_png(fig, path: str | os.PathLike, footer: str) -> Path:
     fig.text(0.01, 0.005, "\n".join(lines), fontsize=6, color="0.35", ha="left", va="bottom")
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buffer.getvalue())
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return atomic_write(path, lambda f: f.write(buffer.getvalue()), binary=True)
 
 
 def _check_table(table: pd.DataFrame, columns: Sequence[str]) -> None:

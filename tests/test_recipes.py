@@ -529,3 +529,27 @@ def test_a_tiny_run_trains_on_cuda_with_amp(tmp_path, data_root):
     state = load_checkpoint(run_dir)
     assert state["step"] == 30 and all(torch.isfinite(v).all() for v in state["policy"].values())
     assert json.loads((run_dir / "summary.json").read_text())["finished"]
+
+
+def test_report_compares_the_smoke_runs(smoke_run, data_root, tmp_path, capsys):
+    from tar_rl.report import main as report_main
+
+    run_dir, config = smoke_run
+    baseline = train({**config, "objective": {**config["objective"], "name": "uniform"}})
+    assert baseline.parent == run_dir.parent and baseline.name.startswith("uniform-mlp-s0-")
+    out = tmp_path / "report"
+    assert report_main([str(run_dir.parent), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "uniform" in printed and "tar" in printed
+    table = pd.read_csv(out / "comparison.csv")
+    assert sorted(table["objective"]) == ["tar", "uniform"]
+    finals = {
+        name: json.loads((d / "summary.json").read_text())["final"]
+        for name, d in (("tar", run_dir), ("uniform", baseline))
+    }
+    for name, final in finals.items():
+        overall = next(r for r in final if r["level"] == "overall")
+        row = table[table["objective"] == name].iloc[0]
+        assert row["success_overall_mean"] == pytest.approx(100 * overall["success"])
+    for png in ("success_vs_neps.png", "group_success.png", f"weights_{run_dir.name}.png"):
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
