@@ -844,7 +844,7 @@ def plot_weights(
     from matplotlib.ticker import MaxNLocator
 
     fig = _new_figure(8.0, 4.2)
-    fig.subplots_adjust(left=0.09, right=0.9, top=0.9, bottom=0.15)
+    fig.subplots_adjust(left=0.12, right=0.9, top=0.9, bottom=0.15)
     ax = fig.add_subplot()
     ax_w = ax.twinx()
     ax.plot(t, loss, color="C0", linewidth=1.3)
