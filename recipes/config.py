@@ -212,7 +212,8 @@ def _hydra_settings() -> dict:
         "run": {"dir": "."},
         "sweep": {"dir": "${runs_root}", "subdir": "."},
         "output_subdir": None,
-        "job": {"chdir": False},
+        "job": {"chdir": False, "name": "train"},
+        "help": {"app_name": "tar-rl train"},
     }
 
 
