@@ -147,6 +147,7 @@ def evaluate(
     workers: int | None = None,
     envs_per_worker: int | None = None,
     progress: bool = True,
+    shard: tuple[int, int] = (0, 1),
 ) -> pd.DataFrame:
     """Evaluate ``policy`` on ``tasks_spec`` (see ``tasks.resolve_tasks``); one row per rollout (``COLUMNS``).
 
@@ -162,12 +163,21 @@ def evaluate(
         envs_per_worker: rollouts batched together in a worker (default: ``default_envs_per_worker``
             of the largest shard, 4..32).
         progress: show a tqdm bar over rollouts.
+        shard: ``(index, count)``: run only the rollouts ``index, index + count, ...`` of the
+            (task, rollout) list, e.g. one share per process of a distributed job. The rows of
+            the ``count`` shards, concatenated and sorted by ``task_id`` and ``variation_index``,
+            are the rows of the whole evaluation (each rollout depends only on its variation).
 
     Rows are ordered by task (``TASKS`` order) then rollout, whatever the number of workers.
     """
     _check_args(policy, rollouts_per_task, horizon, workers, envs_per_worker)
+    index, count = shard
+    if not (isinstance(count, int) and count >= 1 and isinstance(index, int) and 0 <= index < count):
+        raise ValueError(f"shard must be (index, count) with 0 <= index < count, got {shard!r}")
     names = tasks.resolve_tasks(tasks_spec)
-    jobs = [(task, k) for task in names for k in range(rollouts_per_task)]
+    jobs = [(task, k) for task in names for k in range(rollouts_per_task)][index::count]
+    if not jobs:
+        return pd.DataFrame([], columns=list(COLUMNS))
     if workers is None:
         workers = max(1, min(_cpu_count(), math.ceil(len(jobs) / _MIN_BATCH)))
     workers = min(workers, len(jobs))

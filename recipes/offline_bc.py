@@ -30,6 +30,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -42,6 +43,7 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
+from tar_rl import distributed
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
 from tar_rl.data import DemoDataset, build_dataset
@@ -205,7 +207,10 @@ def validate(config: dict) -> dict:
     return {"train": train_tasks, "eval": eval_tasks}
 
 
-def _device(name: str) -> torch.device:
+def _device(name: str, local_rank: int = 0) -> torch.device:
+    """The torch device for ``device`` (under torchrun, ``cuda`` means this rank's ``cuda:LOCAL_RANK``)."""
+    if name in ("auto", "cuda") and torch.cuda.is_available() and local_rank:
+        return torch.device("cuda", local_rank)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -280,10 +285,16 @@ def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.o
 
 
 def make_evaluator(
-    config: dict, tasks: Sequence[str], progress: bool = True
+    config: dict, tasks: Sequence[str], progress: bool = True, shard: tuple[int, int] = (0, 1)
 ) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
-    """A function running the evaluator collectors on a policy, with ``eval``'s settings."""
+    """A function running the evaluator collectors on a policy, with ``eval``'s settings.
+
+    ``shard=(rank, world)`` runs that share of the rollouts on this process's share of the cores.
+    """
     ev = config["eval"]
+    workers = ev["workers"]
+    if workers is None and shard[1] > 1:
+        workers = max(1, (os.cpu_count() or 1) // shard[1])
 
     def run(actor: TensorDictModuleBase) -> pd.DataFrame:
         return evaluate(
@@ -292,8 +303,9 @@ def make_evaluator(
             rollouts_per_task=ev["rollouts"],
             seed=ev["seed"],
             horizon=ev["horizon"],
-            workers=ev["workers"],
+            workers=workers,
             progress=progress,
+            shard=shard,
         )
 
     return run
@@ -425,15 +437,13 @@ def evaluate_checkpoint(
 # -- The job -----------------------------------------------------------------------------------
 
 
-def _prepare_run_dir(config: dict) -> Path:
-    run_dir = Path(config["run_dir"] or Path(config["runs_root"]) / run_name(config))
+def _prepare_run_dir(run_dir: Path) -> None:
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write(run_dir / ".write-test", lambda f: f.write("ok"))
         (run_dir / ".write-test").unlink()
     except OSError as err:
         raise ConfigError(f"cannot write to the run directory {run_dir}: {err}") from None
-    return run_dir
 
 
 def _check_resumable(run_dir: Path, config: dict) -> dict | None:
@@ -450,8 +460,282 @@ def _check_resumable(run_dir: Path, config: dict) -> dict | None:
     return state
 
 
+class Trainer:
+    """One training job: built from a resolved config, then :meth:`run` (resume, loop, final evaluation).
+
+    Under ``torchrun`` every rank builds a ``Trainer``; the policy's objective is wrapped in
+    ``DistributedDataParallel``; each rank draws the same global batch of ``data.batch_segments``
+    segments (the sampler's generator is seeded identically) and trains on its contiguous share
+    of them, so the job follows the data order of a single-process run of the same global batch.
+    Rank 0 alone writes files and prints; evaluation is sharded over the ranks and gathered.
+    """
+
+    def __init__(self, config: dict, tasks: dict, run_dir: Path, resume: dict | None, dist: distributed.Dist):
+        self.config, self.tasks, self.run_dir, self.dist = config, tasks, run_dir, dist
+        data_cfg, self.opt_cfg, self.log_cfg = config["data"], config["optim"], config["logging"]
+        self.progress = self.log_cfg["progress"] and dist.main
+        self.device = _device(config["device"], dist.local_rank)
+        if config["threads"]:
+            torch.set_num_threads(config["threads"])
+        torch.manual_seed(config["seed"])
+        if not dist.main:
+            dist.barrier()  # rank 0 collects (or finds) the dataset first; the others then load it
+        self.dataset = make_dataset(config, tasks["train"], progress=self.progress)
+        if dist.main:
+            dist.barrier()
+        self.dataset.check_disjoint(config["eval"]["seed"], config["eval"]["rollouts"])
+        self.info = DataInfo.from_metadata(self.dataset.metadata)
+        self.policy = make_policy(config, self.info)
+        self.objective = make_objective(config, self.policy).to(self.device)
+        self.model = self.objective
+        if dist.active:
+            from torch.nn.parallel import DistributedDataParallel
+
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            self.model = DistributedDataParallel(self.objective, device_ids=ids, forward_sync_buffers=False)
+        self.params = [p for p in self.objective.parameters() if p.requires_grad]
+        self.optimizer, self.scheduler = make_optimizer(config, self.params)
+        self.ema = None
+        if self.opt_cfg["ema"] > 0:
+            from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+            decay = get_ema_multi_avg_fn(self.opt_cfg["ema"])
+            self.ema = AveragedModel(self.policy.actor, multi_avg_fn=decay, use_buffers=True)
+        self.generator = torch.Generator().manual_seed(config["seed"])
+        self.sampler = self.dataset.segments(
+            data_cfg["batch_segments"], data_cfg["slice_len"], keys=self.policy.keys, generator=self.generator
+        )
+        share = data_cfg["batch_segments"] // dist.world
+        self.rows = slice(dist.rank * share, (dist.rank + 1) * share)
+        self.evaluator = make_evaluator(config, tasks["eval"], progress=self.progress, shard=(dist.rank, dist.world))
+        self.steps = self.opt_cfg["steps"]
+        self.record_at = (
+            {self.steps if s == -1 else s for s in self.log_cfg["record_weights_at"]} if dist.main else set()
+        )
+        self.episodes = []
+        if self.record_at:
+            self.episodes = _demo_episodes(
+                self.dataset, tasks["train"], self.log_cfg["record_episodes"], self.policy.keys, self.device
+            )
+        self.logs = RunLogs(run_dir)
+        self.step, self.skipped, self.train_seconds = 0, 0, 0.0
+        if resume is not None:
+            self._restore(resume)
+
+    # -- state ------------------------------------------------------------------------------
+
+    def _restore(self, state: dict) -> None:
+        if DataInfo.from_dict(state["data_info"]) != self.info:
+            raise ConfigError(f"{self.run_dir}: the dataset differs from the one the checkpoint was trained on")
+        self.objective.load_state_dict(state["objective"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        if self.ema is not None:
+            self.ema.load_state_dict(state["ema"])
+        self.generator.set_state(state["sampler_rng"])
+        torch.set_rng_state(state["torch_rng"])
+        self.logs = RunLogs(self.run_dir, **state["logs"])
+        self.step, self.skipped, self.train_seconds = state["step"], state["skipped"], state["train_seconds"]
+        self._print(f"{self.run_dir}: resuming at step {self.step} of {self.steps}")
+
+    def checkpoint(self, finished: bool = False) -> None:
+        """Write the whole training state (rank 0; every rank holds the same state)."""
+        if not self.dist.main:
+            return
+        ema = self.ema
+        save_checkpoint(
+            {
+                "step": self.step,
+                "finished": finished,
+                "config": self.config,
+                "data_info": self.info.to_dict(),
+                "policy": self.policy.actor.state_dict(),
+                "ema_policy": ema.module.state_dict() if ema is not None else None,
+                "objective": self.objective.state_dict(),
+                "optimizer": self.optimizer.state_dict(),
+                "scheduler": self.scheduler.state_dict(),
+                "ema": ema.state_dict() if ema is not None else None,
+                "sampler_rng": self.generator.get_state(),
+                "torch_rng": torch.get_rng_state(),
+                "logs": self.logs.state(),
+                "skipped": self.skipped,
+                "train_seconds": self.train_seconds,
+                "world_size": self.dist.world,
+            },
+            self.run_dir,
+        )
+        self.logs.write()
+
+    def _print(self, *args) -> None:
+        if self.dist.main:
+            print(*args)
+
+    # -- one step ---------------------------------------------------------------------------
+
+    def train_step(self) -> dict[str, float] | None:
+        """One optimiser step on this rank's share of the next global batch; its scalars, or None if skipped."""
+        batch = self.sampler.sample()[self.rows].to(self.device, non_blocking=True)
+        use_amp = self.opt_cfg["amp"] and self.device.type == "cuda"
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=use_amp):
+            out = self.model(batch)
+        loss = out["loss_tar"]
+        self.optimizer.zero_grad(set_to_none=True)
+        # Every rank runs backward every step (DDP's gradient all-reduce happens there), so a
+        # non-finite loss on one rank is seen by all of them, through the gradients and the flag.
+        loss.backward()
+        clip = self.opt_cfg["grad_clip"] if self.opt_cfg["grad_clip"] > 0 else math.inf
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.params, clip)
+        finite = self.dist.all_true(bool(torch.isfinite(loss)) and bool(torch.isfinite(grad_norm)))
+        self.step += 1
+        if not finite:
+            self.skipped += 1
+            self.optimizer.zero_grad(set_to_none=True)
+            self.scheduler.step()
+            if self.skipped > self.opt_cfg["skip_nonfinite"]:
+                path = self.run_dir / CHECKPOINT
+                last = load_checkpoint(path)["step"] if path.exists() else None
+                kept = f"The last good checkpoint (step {last}) is kept in {path}." if last is not None else ""
+                raise TrainingError(
+                    f"non-finite loss or gradient at step {self.step} (loss={float(loss.detach())}); "
+                    f"{self.skipped} such step(s), optim.skip_nonfinite={self.opt_cfg['skip_nonfinite']}. "
+                    + (kept or "No checkpoint had been written yet.")
+                )
+            return None
+        self.optimizer.step()
+        self.scheduler.step()
+        if self.ema is not None:
+            self.ema.update_parameters(self.policy.actor)
+        scalars = {n: float(out[n].detach()) for n in _LOGGED}
+        scalars["grad_norm"] = float(grad_norm)
+        return scalars
+
+    # -- evaluation and weights ------------------------------------------------------------
+
+    def evaluate(self, step: int) -> pd.DataFrame | None:
+        """Run the evaluator (sharded over ranks); rank 0 logs and returns the summary table."""
+        ema = self.ema if self.config["eval"]["use_ema"] else None
+        rollouts = self.evaluator(_eval_actor(self.policy.actor, ema))
+        if self.dist.active:
+            parts = self.dist.all_gather_object(rollouts)
+            rollouts = pd.concat(parts, ignore_index=True).sort_values(["task_id", "variation_index"])
+            rollouts = rollouts.reset_index(drop=True)
+        if not self.dist.main:
+            return None
+        table = summarize(rollouts)
+        self.logs.rollouts += rollout_records(step, rollouts)
+        self.logs.metrics += summary_rows(step, table)
+        return table
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def run(self) -> pd.DataFrame | None:
+        """Train from the current step to ``optim.steps``, evaluate, write the summary; rank 0 gets the table."""
+        from tqdm import tqdm
+
+        if self.dist.main:
+            self.logs.write()
+        every, eval_every = self.log_cfg["every"], self.config["eval"]["every"]
+        sums, n_ok, tick = {}, 0, time.perf_counter()
+        self.objective.train()
+        bar = tqdm(total=self.steps, initial=self.step, desc="train", unit="step", disable=not self.progress)
+        try:
+            while self.step < self.steps:
+                scalars = self.train_step()
+                if scalars is not None:
+                    sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
+                    n_ok += 1
+                bar.update(1)
+                done = self.step
+                if done % every == 0 or done == self.steps:
+                    now = time.perf_counter()
+                    self.train_seconds += now - tick
+                    tick = now
+                    self._log_train(done, sums, n_ok)
+                    if n_ok:
+                        bar.set_postfix(loss=f"{sums['loss_tar'] / n_ok:.4g}", alpha=f"{sums['tar_mix'] / n_ok:.2f}")
+                    sums, n_ok = {}, 0
+                if eval_every and done % eval_every == 0 and done != self.steps:
+                    self.evaluate(done)
+                    tick = time.perf_counter()
+                if done in self.record_at:
+                    self.logs.weights += record_weights(
+                        self.objective, self.episodes, self.config["data"]["slice_len"], done
+                    )
+                    self.objective.train()
+                if done % self.log_cfg["checkpoint_every"] == 0 and done != self.steps:
+                    self.train_seconds += time.perf_counter() - tick
+                    tick = time.perf_counter()
+                    self.checkpoint()
+        finally:
+            bar.close()
+        self.train_seconds += time.perf_counter() - tick
+        start = time.perf_counter()
+        table = self.evaluate(self.steps)
+        self.eval_seconds = time.perf_counter() - start
+        self.checkpoint(finished=True)
+        return table
+
+    def _log_train(self, step: int, sums: dict[str, float], n_ok: int) -> None:
+        names = [*_LOGGED, "grad_norm"]
+        totals = self.dist.all_sum([sums.get(n, 0.0) for n in names] + [float(n_ok)])
+        count = totals[-1]
+        if count:
+            self.logs.metrics += [
+                (step, "train", "loss" if n == "loss_tar" else n, v / count) for n, v in zip(names, totals[:-1])
+            ]
+        self.logs.metrics += [
+            (step, "train", "lr", float(self.scheduler.get_last_lr()[0])),
+            (step, "train", "skipped", float(self.skipped)),
+        ]
+
+    def write_summary(self, table: pd.DataFrame) -> None:
+        config = self.config
+        summary = {
+            "run_name": self.run_dir.name,
+            "objective": config["objective"]["name"],
+            "policy": config["policy"]["name"],
+            "seed": config["seed"],
+            "steps": self.steps,
+            "finished": True,
+            "final": [
+                {**rec, "neps": json_metric(rec["neps"])} for rec in table[table["level"] != "task"].to_dict("records")
+            ],
+            "final_train_loss": last_metric(self.logs.metrics, "loss"),
+            "nonfinite_steps_skipped": self.skipped,
+            "train_seconds": self.train_seconds,
+            "final_eval_seconds": self.eval_seconds,
+            "world_size": self.dist.world,
+            "config": config,
+            "git_commit": git_commit(),
+            "versions": {"torch": torch.__version__, **self.dataset.metadata["versions"]},
+        }
+        write_json_atomic(summary, self.run_dir / "summary.json")
+
+
+_LOGGED = ("loss_tar", "uniform_loss", "tar_mix", "weight_max", "weight_ess")
+
+
+def _agree_across_ranks(config: dict, dist: distributed.Dist) -> None:
+    """Refuse a job whose ranks were started with different settings (or an indivisible batch)."""
+    if not dist.active:
+        return
+    settings = dist.all_gather_object(identity(config))
+    for rank, other in enumerate(settings):
+        diff = config_differences(settings[0], other)
+        if diff:
+            raise ConfigError(
+                f"the ranks were started with different settings (rank 0 vs rank {rank}: {'; '.join(diff)})"
+            )
+    if config["data"]["batch_segments"] % dist.world:
+        raise ConfigError(
+            f"data.batch_segments={config['data']['batch_segments']} is not divisible by the {dist.world} processes"
+        )
+
+
 def train(cfg: Any) -> Path:
     """Run (or resume, or skip if finished) the training job; returns its run directory.
+
+    Under ``torchrun`` (``WORLD_SIZE`` > 1) every rank calls this; see :class:`Trainer`.
 
     Args:
         cfg: a Hydra ``DictConfig``, a :class:`TrainConfig` or an equivalent dict.
@@ -463,195 +747,33 @@ def train(cfg: Any) -> Path:
     """
     config = resolve_config(cfg)
     tasks = validate(config)
-    run_dir = _prepare_run_dir(config)
-    resume = _check_resumable(run_dir, config)
-    progress = config["logging"]["progress"]
-    summary_path = run_dir / "summary.json"
-    if resume is not None and resume.get("finished") and summary_path.exists():
-        print(f"{run_dir}: finished already ({resume['step']} steps); not run again")
-        return run_dir
-
-    from omegaconf import OmegaConf
-
-    atomic_write(run_dir / "config.yaml", lambda f: f.write(OmegaConf.to_yaml(OmegaConf.create(config))))
-    device = _device(config["device"])
-    if config["threads"]:
-        torch.set_num_threads(config["threads"])
-    torch.manual_seed(config["seed"])
-    dataset = make_dataset(config, tasks["train"], progress=progress)
-    dataset.check_disjoint(config["eval"]["seed"], config["eval"]["rollouts"])
-    info = DataInfo.from_metadata(dataset.metadata)
-    policy = make_policy(config, info)
-    objective = make_objective(config, policy).to(device)
-    opt_cfg, log_cfg = config["optim"], config["logging"]
-    params = [p for p in objective.parameters() if p.requires_grad]
-    optimizer, scheduler = make_optimizer(config, params)
-    ema = None
-    if opt_cfg["ema"] > 0:
-        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
-
-        ema = AveragedModel(policy.actor, multi_avg_fn=get_ema_multi_avg_fn(opt_cfg["ema"]), use_buffers=True)
-    generator = torch.Generator().manual_seed(config["seed"])
-    sampler = dataset.segments(
-        config["data"]["batch_segments"], config["data"]["slice_len"], keys=policy.keys, generator=generator
-    )
-    evaluator = make_evaluator(config, tasks["eval"], progress=progress)
-    steps = opt_cfg["steps"]
-    record_at = {steps if s == -1 else s for s in log_cfg["record_weights_at"]}
-    episodes = (
-        _demo_episodes(dataset, tasks["train"], log_cfg["record_episodes"], policy.keys, device) if record_at else []
-    )
-
-    logs = RunLogs(run_dir)
-    start, skipped, train_seconds = 0, 0, 0.0
-    if resume is not None:
-        _check_data_info(resume, info, run_dir)
-        objective.load_state_dict(resume["objective"])
-        optimizer.load_state_dict(resume["optimizer"])
-        scheduler.load_state_dict(resume["scheduler"])
-        if ema is not None:
-            ema.load_state_dict(resume["ema"])
-        generator.set_state(resume["sampler_rng"])
-        torch.set_rng_state(resume["torch_rng"])
-        logs = RunLogs(run_dir, **resume["logs"])
-        start, skipped, train_seconds = resume["step"], resume["skipped"], resume["train_seconds"]
-        print(f"{run_dir}: resuming at step {start} of {steps}")
-    logs.write()
-
-    def checkpoint(step: int, finished: bool = False) -> None:
-        state = {
-            "step": step,
-            "finished": finished,
-            "config": config,
-            "data_info": info.to_dict(),
-            "policy": policy.actor.state_dict(),
-            "ema_policy": ema.module.state_dict() if ema is not None else None,
-            "objective": objective.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "scheduler": scheduler.state_dict(),
-            "ema": ema.state_dict() if ema is not None else None,
-            "sampler_rng": generator.get_state(),
-            "torch_rng": torch.get_rng_state(),
-            "logs": logs.state(),
-            "skipped": skipped,
-            "train_seconds": train_seconds,
-        }
-        save_checkpoint(state, run_dir)
-
-    def run_eval(step: int) -> pd.DataFrame:
-        rollouts = evaluator(_eval_actor(policy.actor, ema if config["eval"]["use_ema"] else None))
-        table = summarize(rollouts)
-        logs.rollouts += rollout_records(step, rollouts)
-        logs.metrics += summary_rows(step, table)
-        return table
-
-    from tqdm import tqdm
-
-    use_amp = opt_cfg["amp"] and device.type == "cuda"
-    clip = opt_cfg["grad_clip"] if opt_cfg["grad_clip"] > 0 else math.inf
-    names = ("loss_tar", "uniform_loss", "tar_mix", "weight_max", "weight_ess")
-    acc = {n: 0.0 for n in (*names, "grad_norm")}
-    n_acc, tick = 0, time.perf_counter()
-    objective.train()
-    bar = tqdm(total=steps, initial=start, desc="train", unit="step", disable=not progress, mininterval=1.0)
+    dist = distributed.init(_device(config["device"]).type)
     try:
-        for step in range(start, steps):
-            batch = sampler.sample().to(device, non_blocking=True)
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
-                out = objective(batch)
-            loss = out["loss_tar"]
-            optimizer.zero_grad(set_to_none=True)
-            finite = bool(torch.isfinite(loss))
-            if finite:
-                loss.backward()
-                grad_norm = torch.nn.utils.clip_grad_norm_(params, clip)
-                finite = bool(torch.isfinite(grad_norm))
-            if not finite:
-                skipped += 1
-                optimizer.zero_grad(set_to_none=True)
-                if skipped > opt_cfg["skip_nonfinite"]:
-                    last = load_checkpoint(run_dir / CHECKPOINT)["step"] if (run_dir / CHECKPOINT).exists() else None
-                    raise TrainingError(
-                        f"non-finite loss or gradient at step {step + 1} (loss={float(loss.detach())}); "
-                        f"{skipped} such step(s), optim.skip_nonfinite={opt_cfg['skip_nonfinite']}. "
-                        + (
-                            f"The last good checkpoint (step {last}) is kept in {run_dir / CHECKPOINT}."
-                            if last is not None
-                            else "No checkpoint had been written yet."
-                        )
-                    )
-                scheduler.step()
-            else:
-                optimizer.step()
-                scheduler.step()
-                if ema is not None:
-                    ema.update_parameters(policy.actor)
-                for n in names:
-                    acc[n] += float(out[n].detach())
-                acc["grad_norm"] += float(grad_norm)
-                n_acc += 1
-            done = step + 1
-            bar.update(1)
-            if done % log_cfg["every"] == 0 or done == steps:
-                now = time.perf_counter()
-                train_seconds += now - tick
-                if n_acc:
-                    logs.metrics += [(done, "train", "loss" if n == "loss_tar" else n, acc[n] / n_acc) for n in acc]
-                logs.metrics += [
-                    (done, "train", "lr", float(scheduler.get_last_lr()[0])),
-                    (done, "train", "skipped", float(skipped)),
-                ]
-                bar.set_postfix(loss=f"{acc['loss_tar'] / max(n_acc, 1):.4g}", alpha=f"{float(out['tar_mix']):.2f}")
-                acc = dict.fromkeys(acc, 0.0)
-                n_acc = 0
-                tick = now
-            if config["eval"]["every"] and done % config["eval"]["every"] == 0 and done != steps:
-                run_eval(done)
-                tick = time.perf_counter()
-            if done in record_at:
-                logs.weights += record_weights(objective, episodes, config["data"]["slice_len"], done)
-                objective.train()
-            if done % log_cfg["checkpoint_every"] == 0 and done != steps:
-                train_seconds += time.perf_counter() - tick
-                tick = time.perf_counter()
-                checkpoint(done)
-                logs.write()
+        _agree_across_ranks(config, dist)
+        run_dir = Path(config["run_dir"] or Path(config["runs_root"]) / run_name(config))
+        if dist.main:
+            _prepare_run_dir(run_dir)
+        dist.barrier()
+        resume = _check_resumable(run_dir, config)
+        if resume is not None and resume.get("finished") and (run_dir / "summary.json").exists():
+            if dist.main:
+                print(f"{run_dir}: finished already ({resume['step']} steps); not run again")
+            return run_dir
+        if dist.main:
+            from omegaconf import OmegaConf
+
+            atomic_write(run_dir / "config.yaml", lambda f: f.write(OmegaConf.to_yaml(OmegaConf.create(config))))
+        trainer = Trainer(config, tasks, run_dir, resume, dist)
+        table = trainer.run()
+        if dist.main:
+            trainer.write_summary(table)
+            rollouts = config["eval"]["rollouts"]
+            print(f"\n{run_dir}: {trainer.steps} steps, final evaluation ({rollouts} rollouts per task):")
+            print_table(table)
+        dist.barrier()
+        return run_dir
     finally:
-        bar.close()
-    train_seconds += time.perf_counter() - tick
-
-    start_eval = time.perf_counter()
-    table = run_eval(steps)
-    eval_seconds = time.perf_counter() - start_eval
-    checkpoint(steps, finished=True)
-    logs.write()
-    summary = {
-        "run_name": run_dir.name,
-        "objective": config["objective"]["name"],
-        "policy": config["policy"]["name"],
-        "seed": config["seed"],
-        "steps": steps,
-        "finished": True,
-        "final": [
-            {**rec, "neps": json_metric(rec["neps"])} for rec in table[table["level"] != "task"].to_dict("records")
-        ],
-        "final_train_loss": last_metric(logs.metrics, "loss"),
-        "nonfinite_steps_skipped": skipped,
-        "train_seconds": train_seconds,
-        "final_eval_seconds": eval_seconds,
-        "config": config,
-        "git_commit": git_commit(),
-        "versions": {"torch": torch.__version__, **dataset.metadata["versions"]},
-    }
-    write_json_atomic(summary, summary_path)
-    print(f"\n{run_dir}: {steps} steps, final evaluation ({config['eval']['rollouts']} rollouts per task):")
-    print_table(table)
-    return run_dir
-
-
-def _check_data_info(state: dict, info: DataInfo, run_dir: Path) -> None:
-    if DataInfo.from_dict(state["data_info"]) != info:
-        raise ConfigError(f"{run_dir}: the dataset differs from the one the checkpoint was trained on")
+        distributed.shutdown(dist)
 
 
 # -- Hydra entry point -------------------------------------------------------------------------

@@ -492,12 +492,15 @@ def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch):
 
 
 def test_multirun_sweep_over_objectives_and_its_restart_skips_finished_runs(tmp_path, data_root):
+    """A sweep through Hydra's joblib launcher; run again, it skips the finished runs."""
     command = [
         sys.executable,
         "-m",
         "tar_rl",
         "train",
         "-m",
+        "hydra/launcher=joblib",  # Hydra's joblib launcher plugin: the runs go in parallel processes
+        "hydra.launcher.n_jobs=2",
         "objective=uniform,tar",
         f"data.tasks=[{TASK}]",
         "data.n_demos=2",
@@ -553,3 +556,27 @@ def test_report_compares_the_smoke_runs(smoke_run, data_root, tmp_path, capsys):
         assert row["success_overall_mean"] == pytest.approx(100 * overall["success"])
     for png in ("success_vs_neps.png", "group_success.png", f"weights_{run_dir.name}.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_slurm_launcher_example_composes(tmp_path):
+    examples = Path(__file__).parents[1] / "recipes" / "examples"
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tar_rl",
+            "train",
+            "--config-dir",
+            str(examples),
+            "hydra/launcher=slurm",
+            "hydra.launcher.partition=gpu",
+            "--cfg",
+            "hydra",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "SlurmLauncher" in out.stdout and "partition: gpu" in out.stdout

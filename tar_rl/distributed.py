@@ -1,0 +1,103 @@
+"""Training across processes with ``torch.distributed``: what a rank needs to know and to exchange.
+
+A job started by ``torchrun --nproc_per_node=N -m tar_rl train ...`` has ``WORLD_SIZE``, ``RANK``
+and ``LOCAL_RANK`` in its environment; :func:`init` opens the process group (gloo on CPU, NCCL
+on CUDA) and returns a :class:`Dist`. Without those variables, or with ``WORLD_SIZE=1``, it returns
+the single-process ``Dist`` whose collectives are no-ops, so the training loop has one code path.
+
+TAR needs no communication of its own: its weights are computed within each segment, and a rank's
+segments are whole segments, so each rank weights its own share of the batch exactly as a single
+process would weight the same segments. DistributedDataParallel averages the gradients over ranks;
+with the same number of segments per rank that is the gradient of the mean over all segments.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.distributed as torch_dist
+
+__all__ = ["Dist", "init", "shutdown"]
+
+# Long enough for rank 0 to collect a demonstration dataset while the others wait at a barrier.
+# A rank that dies does not leave the others waiting this long: torchrun stops the whole group.
+TIMEOUT = datetime.timedelta(hours=2)
+
+
+@dataclass(frozen=True)
+class Dist:
+    """This process's place in the job.
+
+    Attributes:
+        rank: global rank (0 is the main process: it alone writes files and prints).
+        world: number of processes.
+        local_rank: rank on this machine (selects the CUDA device).
+    """
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def active(self) -> bool:
+        return self.world > 1
+
+    def barrier(self) -> None:
+        if self.active:
+            torch_dist.barrier()
+
+    def all_gather_object(self, obj: Any) -> list[Any]:
+        """Every rank's ``obj``, in rank order, on every rank."""
+        if not self.active:
+            return [obj]
+        out: list[Any] = [None] * self.world
+        torch_dist.all_gather_object(out, obj)
+        return out
+
+    def all_sum(self, values: list[float]) -> list[float]:
+        """Element-wise sums over the ranks (float64)."""
+        if not self.active:
+            return list(values)
+        t = torch.tensor(values, dtype=torch.float64)
+        if torch_dist.get_backend() == "nccl":
+            t = t.cuda()
+        torch_dist.all_reduce(t)
+        return t.cpu().tolist()
+
+    def all_true(self, flag: bool) -> bool:
+        """True when ``flag`` is true on every rank."""
+        if not self.active:
+            return bool(flag)
+        return self.all_sum([0.0 if flag else 1.0])[0] == 0.0
+
+
+def init(device_type: str = "cpu") -> Dist:
+    """Open the process group described by torchrun's environment (or return the single-process ``Dist``).
+
+    Args:
+        device_type: ``cpu`` (gloo) or ``cuda`` (NCCL; each rank uses ``cuda:LOCAL_RANK``).
+    """
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist()
+    rank, local_rank = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if not torch_dist.is_initialized():
+        backend = "nccl" if device_type == "cuda" else "gloo"
+        if device_type == "cuda":
+            torch.cuda.set_device(local_rank)
+        torch_dist.init_process_group(backend=backend, timeout=TIMEOUT)
+    return Dist(rank=rank, world=world, local_rank=local_rank)
+
+
+def shutdown(d: Dist) -> None:
+    """Close the process group opened by :func:`init` (no-op for a single process)."""
+    if d.active and torch_dist.is_initialized():
+        torch_dist.destroy_process_group()
