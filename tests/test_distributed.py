@@ -253,3 +253,20 @@ def test_batch_must_split_evenly_over_ranks(job):
     done = _launch(root, [*overrides, "data.batch_segments=7"], "odd", 2)
     assert done.returncode != 0
     assert "data.batch_segments=7 is not divisible by the 2 processes" in done.stderr
+
+
+@pytest.mark.slow
+def test_bench_scale_quick_writes_csv(tmp_path):
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.py"
+    spec = importlib.util.spec_from_file_location("bench_scale", path)
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules["bench_scale"] = bench  # spawned ranks import it by name (its folder goes on sys.path)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "scale.csv"
+    assert bench.main(["--quick", "--procs", "2", "--out", str(out)]) == 0
+    df = pd.read_csv(out)
+    assert set(df.section) == {"train", "eval"} and set(df.rep.astype(str)) == {"0", "median"}
+    assert (df.one_process > 0).all() and (df.n_processes > 0).all()
+    assert ((df.efficiency - df.n_processes / (2 * df.one_process)).abs() < 1e-9).all()
