@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from torchrl.data import Unbounded
-from torchrl.envs import Compose, DoubleToFloat, GymWrapper, TensorDictPrimer, TransformedEnv
+from torchrl.envs import Compose, DoubleToFloat, GymWrapper, InitTracker, TensorDictPrimer, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
 from tar_rl.collectors import tasks
@@ -152,8 +152,12 @@ def _reward_spec(batch_size) -> Unbounded:
 
 
 def _transforms(task_ids: torch.Tensor) -> Compose:
+    # InitTracker writes `is_init` ([..., 1] bool): True on the first step of a rollout (also in a
+    # slot that a partial reset refills), so stateful policies (history, action chunks) know
+    # when to forget.
     return Compose(
         DoubleToFloat(in_keys=["observation"]),
+        InitTracker(init_key="is_init"),
         TensorDictPrimer(
             expand_specs=True,
             task_id=Unbounded((), dtype=torch.int64),
