@@ -101,6 +101,7 @@ class DataConfig:
         slice_len: segment length ``L``.
         batch_segments: segments per batch ``B`` (a batch holds ``B * L`` steps).
         chunk_horizon: ``H`` of the stored ``action_chunk`` (for chunked heads).
+        history: ``K`` of the stored ``observation_history`` (for heads reading past observations).
         workers: collection processes (default: every core).
     """
 
@@ -111,6 +112,7 @@ class DataConfig:
     slice_len: int = 16
     batch_segments: int = 64
     chunk_horizon: int = 8
+    history: int = 2
     workers: int | None = None
 
 

@@ -157,6 +157,7 @@ def validate(config: dict) -> dict:
         ("data.slice_len", data["slice_len"], 1),
         ("data.batch_segments", data["batch_segments"], 1),
         ("data.chunk_horizon", data["chunk_horizon"], 1),
+        ("data.history", data["history"], 1),
         ("eval.rollouts", ev["rollouts"], 1),
         ("eval.every", ev["every"], 0),
         ("optim.steps", opt["steps"], 1),
@@ -201,7 +202,8 @@ def validate(config: dict) -> dict:
         raise ConfigError(f"data.seed={data['seed']} and eval.seed={ev['seed']}: {err}") from None
     # The objective and the head are built once on placeholder data so that their own checks run now.
     try:
-        make_objective(config, make_policy(config, DataInfo()))
+        placeholder = DataInfo(chunk_horizon=data["chunk_horizon"], history=data["history"])
+        make_objective(config, make_policy(config, placeholder))
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
     return {"train": train_tasks, "eval": eval_tasks}
@@ -236,6 +238,7 @@ def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> D
         n_demos=data["n_demos"],
         seed=data["seed"],
         chunk_horizon=data["chunk_horizon"],
+        history=data["history"],
         workers=data["workers"],
         progress=progress,
     )
@@ -261,6 +264,7 @@ def make_objective(config: dict, policy: Policy) -> TARLoss:
         perturb_fraction=obj["perturb_fraction"],
         perturb_scale=obj["perturb_scale"],
         seed=config["seed"],
+        loss_key=policy.loss_key,
     )
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)

@@ -30,6 +30,10 @@ Keys per step (``N`` steps, chunk horizon ``H``):
   (``tasks.task_index``), ``step`` int64 (index within the episode),
 * ``action_chunk`` [H, 4] float32: the clipped actions ``t .. t+H-1`` of the same episode, past
   the episode end the last action repeated; ``action_chunk_valid`` [H] bool, True on real steps.
+* ``observation_history`` [K, 39] float32: the observations ``t-K+1 .. t`` of the same episode,
+  oldest first (the last entry is ``observation``), before the episode start the first
+  observation repeated; ``observation_history_valid`` [K] bool, True on real steps (K: ``history``,
+  for heads that read a window of past observations).
 """
 
 from __future__ import annotations
@@ -66,7 +70,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: observation_history
 METADATA_FILE = "metadata.json"
 BUFFER_DIR = "buffer"
 NAME_PREFIX = "metaworld-demos-"
@@ -86,12 +90,15 @@ def _version(dist: str) -> str | None:
         return None
 
 
-def _settings(tasks: tuple[str, ...], n_demos: int, seed: int, chunk_horizon: int, max_attempts: int) -> dict:
+def _settings(
+    tasks: tuple[str, ...], n_demos: int, seed: int, chunk_horizon: int, history: int, max_attempts: int
+) -> dict:
     return {
         "tasks": list(tasks),
         "n_demos": n_demos,
         "seed": seed,
         "chunk_horizon": chunk_horizon,
+        "history": history,
         "max_attempts": max_attempts,
         "format_version": FORMAT_VERSION,
         "metaworld": _version("metaworld"),
@@ -122,7 +129,16 @@ def _chunks(action: np.ndarray, lengths: np.ndarray, horizon: int) -> tuple[np.n
     return action[rows], valid
 
 
-def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int) -> TensorDict:
+def _history(observation: np.ndarray, lengths: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """``[N, K, D]`` observation windows (oldest first) and their ``[N, K]`` validity."""
+    starts = np.repeat(np.cumsum(lengths) - lengths, lengths)  # [N] the episode's first row
+    rows = np.arange(len(observation))[:, None] - np.arange(window)[::-1][None, :]  # [N, K]
+    valid = rows >= starts[:, None]
+    rows = np.maximum(rows, starts[:, None])
+    return observation[rows], valid
+
+
+def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int, history: int = 1) -> TensorDict:
     """One flat ``[N]`` TensorDict of all tasks, episodes numbered in task order."""
     cat = {
         k: np.concatenate([getattr(r, k) for r in results.values()])
@@ -142,6 +158,7 @@ def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int) -> Tensor
     episode = np.repeat(np.arange(len(lengths), dtype=np.int64), lengths)
     task_id = np.concatenate([np.full(r.steps, _tasks.task_index(r.task), dtype=np.int64) for r in results.values()])
     chunk, chunk_valid = _chunks(cat["action"], lengths, horizon)
+    past, past_valid = _history(cat["observation"], lengths, history)
     terminated = cat["terminated"][:, None]
     truncated = cat["truncated"][:, None]
     t = torch.from_numpy
@@ -155,6 +172,8 @@ def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int) -> Tensor
             "step": t(cat["step"]),
             "action_chunk": t(np.ascontiguousarray(chunk)),
             "action_chunk_valid": t(chunk_valid),
+            "observation_history": t(np.ascontiguousarray(past)),
+            "observation_history_valid": t(past_valid),
             "next": {
                 "observation": t(cat["next_observation"]),
                 "reward": t(cat["reward"][:, None]),
@@ -215,6 +234,7 @@ def _metadata(settings: dict, key: str, results: dict[str, _demos.TaskDemos], da
         "total_episodes": sum(p["kept"] for p in per_task.values()),
         "total_rejected": sum(p["rejected"] for p in per_task.values()),
         "chunk_horizon": settings["chunk_horizon"],
+        "history": settings["history"],
         "keys": _leaf_specs(data),
         "horizon": _demos.HORIZON,
         "action_target": ACTION_TARGET,
@@ -273,6 +293,7 @@ def build_dataset(
     workers: int | None = None,
     max_attempts: int | None = None,
     *,
+    history: int = 2,
     progress: bool = True,
     verbose: bool = True,
 ) -> DemoDataset:
@@ -284,6 +305,7 @@ def build_dataset(
         n_demos: successful demonstrations per task.
         seed: base seed of the variations (``tasks.variation(task, seed, j)``).
         chunk_horizon: ``H`` of ``action_chunk`` (``[H, 4]`` per step).
+        history: ``K`` of ``observation_history`` (``[K, 39]`` per step).
         workers: collection processes, default ``os.cpu_count()``; 0 or 1: in this process.
         max_attempts: episodes per task at most; default ``3 * n_demos + 5``.
         progress: show a progress bar while collecting.
@@ -299,6 +321,7 @@ def build_dataset(
     names = _tasks.resolve_tasks(tasks)
     n_demos = _positive_int("n_demos", n_demos)
     chunk_horizon = _positive_int("chunk_horizon", chunk_horizon)
+    history = _positive_int("history", history)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
     seed = int(seed)
@@ -308,7 +331,7 @@ def build_dataset(
         raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
 
     root = Path(root)
-    settings = _settings(names, n_demos, seed, chunk_horizon, max_attempts)
+    settings = _settings(names, n_demos, seed, chunk_horizon, history, max_attempts)
     key = cache_key(settings)
     name = NAME_PREFIX + key
     final = root / name
@@ -332,7 +355,7 @@ def build_dataset(
         names, n_demos, seed=seed, workers=workers, max_attempts=max_attempts, progress=progress, verbose=verbose
     )
     secs = time.perf_counter() - start
-    data = _to_tensordict(results, chunk_horizon)
+    data = _to_tensordict(results, chunk_horizon, history)
 
     tmp = root / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:

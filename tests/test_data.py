@@ -25,13 +25,14 @@ from tar_rl.data import DatasetError, build_dataset, load_dataset
 TASKS = ["reach-v3", "button-press-topdown-v3"]
 N_DEMOS = 3
 H = 4
+K = 3  # observation history window
 SEED = 0
 
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     root = tmp_path_factory.mktemp("datasets")
-    ds = build_dataset(root, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=2, progress=False)
+    ds = build_dataset(root, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, history=K, workers=2, progress=False)
     return root, ds
 
 
@@ -132,6 +133,25 @@ def test_action_chunks_by_loop(arrays):
                 np.testing.assert_array_equal(chunk[t, k], act[last_real])
 
 
+def test_observation_history_by_loop(arrays):
+    obs, past, valid, ep = (
+        arrays["observation"],
+        arrays["observation_history"],
+        arrays["observation_history_valid"],
+        arrays["episode"],
+    )
+    n = len(obs)
+    assert past.shape == (n, K, 39) and valid.shape == (n, K) and valid.dtype == bool
+    for t in range(n):
+        first = t
+        while first > 0 and ep[first - 1] == ep[t]:
+            first -= 1
+        for j in range(K):  # entry j holds step t - (K - 1 - j): oldest first, the current step last
+            u = t - (K - 1 - j)
+            assert valid[t, j] == (u >= first)
+            np.testing.assert_array_equal(past[t, j], obs[max(u, first)])
+
+
 def test_task_ids(arrays, built):
     _, ds = built
     alphabetical = sorted(ALL_V3_ENVIRONMENTS)  # MetaWorld's own list, sorted
@@ -205,7 +225,7 @@ def test_second_build_loads_without_collecting(built, monkeypatch):
         raise AssertionError("collect() must not run for a cached dataset")
 
     monkeypatch.setattr(demos, "collect", boom)
-    again = build_dataset(root, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=2, progress=False)
+    again = build_dataset(root, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, history=K, workers=2, progress=False)
     assert again.path == ds.path and len(again) == len(ds)
     # a different setting is a different folder (and would collect)
     with pytest.raises(AssertionError, match="must not run"):
@@ -254,7 +274,7 @@ def test_corrupt_dataset_is_detected_and_rebuilt(built, arrays, tmp_path, capsys
         with pytest.raises(DatasetError):
             load_dataset(copy)
     capsys.readouterr()
-    rebuilt = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=0, progress=False)
+    rebuilt = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, history=K, workers=0, progress=False)
     assert "corrupt" in capsys.readouterr().out
     assert rebuilt.path == copy
     td = load_dataset(copy).data
@@ -270,7 +290,7 @@ def test_leftover_temp_folder_is_removed(built, tmp_path, capsys):
     (dead / "buffer" / "junk").write_text("partial")
     other = tmp_path / ".something-else.tmp-999999999-x"  # another dataset's: not ours to remove
     other.mkdir()
-    again = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, workers=0, progress=False)
+    again = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, history=K, workers=0, progress=False)
     assert again.path == tmp_path / ds.path.name
     assert not dead.exists()
     assert other.exists()

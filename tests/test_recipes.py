@@ -91,10 +91,12 @@ def test_every_registered_objective_and_policy_builds_from_defaults(objective, p
     config = compose_config(f"objective={objective}", f"policy={policy}")
     assert config["objective"]["name"] == objective and config["policy"]["name"] == policy
     torch.manual_seed(0)
-    built = make_policy(config, DataInfo(chunk_horizon=8))
+    built = make_policy(config, DataInfo(chunk_horizon=8, history=2))
     loss = make_objective(config, built)
     chunk_valid = torch.ones(3, 5, 8, dtype=torch.bool)
     chunk_valid[:, -1, 3:] = False  # chunks running past the end of their episode
+    history_valid = torch.ones(3, 5, 2, dtype=torch.bool)
+    history_valid[:, 0, 0] = False  # the first step of an episode has no past observation
     batch = TensorDict(
         {
             "observation": torch.randn(3, 5, 39),
@@ -102,6 +104,8 @@ def test_every_registered_objective_and_policy_builds_from_defaults(objective, p
             "action": torch.rand(3, 5, 4) * 2 - 1,
             "action_chunk": torch.rand(3, 5, 8, 4) * 2 - 1,
             "action_chunk_valid": chunk_valid,
+            "observation_history": torch.randn(3, 5, 2, 39),
+            "observation_history_valid": history_valid,
             "episode": torch.arange(3)[:, None].expand(3, 5).clone(),
             "step": torch.arange(5).expand(3, 5).clone(),
             ("collector", "mask"): torch.tensor([[True] * 5, [True] * 5, [True] * 3 + [False] * 2]),

@@ -51,6 +51,7 @@ class DataInfo:
             tasks is evaluated with the same ids).
         obs_mean, obs_std: per-dimension observation statistics of the training data.
         chunk_horizon: the dataset's ``action_chunk`` horizon ``H``.
+        history: the dataset's ``observation_history`` window ``K``.
     """
 
     obs_dim: int = 39
@@ -59,6 +60,7 @@ class DataInfo:
     obs_mean: tuple[float, ...] | None = None
     obs_std: tuple[float, ...] | None = None
     chunk_horizon: int = 1
+    history: int = 1
 
     @classmethod
     def from_metadata(cls, metadata: dict) -> DataInfo:
@@ -70,6 +72,7 @@ class DataInfo:
             obs_mean=tuple(stats["mean"]),
             obs_std=tuple(stats["std"]),
             chunk_horizon=int(metadata["chunk_horizon"]),
+            history=int(metadata.get("history", 1)),
         )
 
     def to_dict(self) -> dict:
@@ -92,12 +95,16 @@ class Policy:
             ``None``: all.
         event_valid: for losses with event dims that may be padding (a chunk running past the
             episode's end), the bool mask entry over them, passed to ``TARLoss.set_keys(event_valid=...)``.
+        loss_key: the loss output holding the per-step loss when the loss returns several
+            ``loss_*`` entries (the others must be scalars, added unweighted, e.g. ACT's KL term);
+            ``None``: its only ``loss_*`` entry.
     """
 
     actor: TensorDictModule
     loss: LossModule
     keys: tuple | None = None
     event_valid: str | None = None
+    loss_key: str | None = None
 
 
 @dataclass(frozen=True)
