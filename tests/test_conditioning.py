@@ -1,0 +1,40 @@
+"""Task conditioning (tar_rl.policies.conditioning): the instruction bag of words, by hand."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tar_rl.collectors.tasks import INSTRUCTIONS, TASKS
+from tar_rl.policies.conditioning import TaskEncoder, instruction_tokens
+
+
+def test_instruction_tokens_spell_each_sentence():
+    ids, mask, vocab = instruction_tokens(len(TASKS))
+    words = sorted({w.strip(".,").lower() for s in INSTRUCTIONS.values() for w in s.split()} - {""})
+    assert vocab == len(words) + 1
+    i = TASKS.index("reach-v3")
+    sentence = [w.strip(".,").lower() for w in INSTRUCTIONS["reach-v3"].split()]
+    assert [words[j - 1] for j in ids[i][mask[i]].tolist()] == sentence
+    assert not mask[i, len(sentence) :].any()
+
+
+def test_instruction_encoder_is_the_mean_of_word_vectors_projected():
+    torch.manual_seed(0)
+    enc = TaskEncoder("instruction", len(TASKS), 8)
+    ids, mask, _ = instruction_tokens(len(TASKS))
+    i = TASKS.index("push-v3")
+    mean = enc.words.weight[ids[i][mask[i]]].mean(0)
+    expected = enc.project(mean)
+    got = enc(torch.tensor([[i, i]]))
+    assert got.shape == (1, 2, 8)
+    torch.testing.assert_close(got[0, 0], expected)
+    got.sum().backward()
+    assert enc.words.weight.grad is not None and enc.project.weight.grad is not None
+
+
+def test_embedding_encoder_and_bad_kind():
+    enc = TaskEncoder("embedding", 50, 4)
+    torch.testing.assert_close(enc(torch.tensor([3])), enc.embedding.weight[3:4])
+    with pytest.raises(ValueError, match="task_conditioning"):
+        TaskEncoder("text", 50, 4)
