@@ -29,6 +29,9 @@ from tar_rl.collectors.tasks import TASKS
 
 __all__ = [
     "POLICIES",
+    "ACTChunkLoss",
+    "ACTConfig",
+    "ACTModel",
     "DataInfo",
     "MLPConfig",
     "MLPPolicy",
@@ -150,4 +153,5 @@ def build_policy(cfg, info: DataInfo) -> Policy:
 
 
 # The heads register themselves on import; importing the package registers them all.
+from .act import ACTChunkLoss, ACTConfig, ACTModel  # noqa: E402
 from .mlp import MLPConfig, MLPPolicy, ObsNorm  # noqa: E402

@@ -1,0 +1,375 @@
+"""The ``act`` head: ACT-style action chunking with a CVAE (Zhao et al. 2023).
+
+The model (:class:`ACTModel`) predicts the next ``H`` actions from the current (normalised)
+observation and the task:
+
+* **CVAE encoder** (training only): a transformer encoder over ``[CLS, obs, a_0 .. a_{H-1}]``
+  (the expert chunk's padded entries, past the episode's end, are masked out of the attention)
+  gives the mean and log-variance of a ``latent_dim`` style variable ``z`` from the CLS output;
+  ``z`` is drawn with the reparameterisation trick.
+* **Encoder-decoder**: a transformer encoder over three tokens ``[z, obs, task]`` (learned
+  positions), then a transformer decoder whose ``H`` learned query embeddings cross-attend to
+  the encoded tokens; a linear layer maps each query's output to an action: ``[H, A]``.
+* **Inference**: ``z`` is the prior mean, zero; the CVAE encoder is not run, so the chunk is a
+  deterministic function of the observation and the task (in ``eval()`` mode, without dropout).
+
+The loss (:class:`ACTChunkLoss`) returns
+
+* ``loss_chunk``: the L1 error of every chunk element, ``[*B, H, A]``, zero where the chunk entry
+  is padding (``action_chunk_valid`` False). With ``Policy.event_valid = "action_chunk_valid"``,
+  ``TARLoss`` turns it into the per-step loss: the mean over the step's valid chunk entries and
+  the action dims (paper Sec. II-D: a chunk's loss is one step's loss);
+* ``loss_kl``: a scalar, ``kl_weight`` times the mean over the valid steps (``("collector",
+  "mask")`` True) of ``KL(q(z | a, o) || N(0, I))`` summed over the latent dims; ``TARLoss`` adds
+  it unweighted (``aux_loss_kl``).
+
+Inference goes through :class:`tar_rl.policies.chunking.ChunkedActor` (temporal ensembling by
+default, or open-loop execution of the chunk's first ``execute_steps`` actions).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.objectives import LossModule
+
+from . import DataInfo, Policy, PolicySpec, register_policy
+from .chunking import EXECUTIONS, ChunkedActor
+from .conditioning import TASK_CONDITIONING, TaskEncoder
+from .mlp import ObsNorm
+
+__all__ = ["ACTChunkLoss", "ACTConfig", "ACTModel", "gaussian_kl"]
+
+
+@dataclass
+class ACTConfig:
+    """The ACT head: a CVAE transformer predicting chunks of ``data.chunk_horizon`` actions.
+
+    The defaults keep ACT's structure at a size that trains on CPU: a step on ``[64, 16]``
+    segments runs every transformer over ``64 * 16 = 1024`` samples (``H + 2`` CVAE tokens, 3
+    encoder tokens and ``H`` decoder queries each), so width and depth set the cost directly.
+    ACT itself uses width 512, 8 heads, 4 encoder and 7 decoder layers (of which its code uses
+    the first, a known quirk), latent 32, dropout 0.1, KL weight 10.
+
+    Attributes:
+        name: registry name.
+        dim: width of every token (transformer model dimension); divisible by ``heads``.
+        heads: attention heads per layer.
+        enc_layers: layers of the encoder over ``[z, obs, task]``.
+        dec_layers: layers of the decoder over the ``H`` chunk queries.
+        cvae_layers: layers of the CVAE encoder over ``[CLS, obs, action chunk]`` (training only).
+        ffn_dim: width of each layer's feed-forward block (ACT: ``4 * dim``).
+        latent_dim: size of the CVAE style latent ``z``.
+        kl_weight: weight of the KL term (``loss_kl``), ACT's beta.
+        dropout: dropout in the transformer layers (training only).
+        execution: ``ensemble`` (ACT's temporal ensembling, a new chunk every step) or
+            ``open_loop`` (``execute_steps`` actions of each chunk, then a new one).
+        execute_steps: actions executed per chunk with ``open_loop`` (``1 .. H``).
+        ensemble_decay: ``m`` of the temporal ensemble's weights ``exp(-m * i)`` (ACT: 0.01).
+        task_conditioning: the task token: ``embedding`` (learned, one per task) or
+            ``instruction`` (the task's instruction words).
+        normalize_obs: standardise observations with the training data's statistics.
+    """
+
+    name: str = "act"
+    dim: int = 64
+    heads: int = 2
+    enc_layers: int = 1
+    dec_layers: int = 1
+    cvae_layers: int = 1
+    ffn_dim: int = 128
+    latent_dim: int = 16
+    kl_weight: float = 10.0
+    dropout: float = 0.1
+    execution: str = "ensemble"
+    execute_steps: int = 1
+    ensemble_decay: float = 0.01
+    task_conditioning: str = "embedding"
+    normalize_obs: bool = True
+
+
+def _check_config(cfg: ACTConfig, info: DataInfo) -> None:
+    for name in ("dim", "heads", "enc_layers", "dec_layers", "cvae_layers", "ffn_dim", "latent_dim"):
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"policy.{name} must be a positive integer, got {value!r}")
+    if cfg.dim % cfg.heads:
+        raise ValueError(f"policy.dim ({cfg.dim}) must be divisible by policy.heads ({cfg.heads})")
+    if not (math.isfinite(cfg.kl_weight) and cfg.kl_weight >= 0):
+        raise ValueError(f"policy.kl_weight must be a finite number >= 0, got {cfg.kl_weight!r}")
+    if not 0 <= cfg.dropout < 1:
+        raise ValueError(f"policy.dropout must lie in [0, 1), got {cfg.dropout!r}")
+    if cfg.execution not in EXECUTIONS:
+        raise ValueError(f"policy.execution must be one of {list(EXECUTIONS)}, got {cfg.execution!r}")
+    if cfg.task_conditioning not in TASK_CONDITIONING:
+        raise ValueError(
+            f"policy.task_conditioning must be one of {list(TASK_CONDITIONING)}, got {cfg.task_conditioning!r}"
+        )
+    if info.chunk_horizon < 1:
+        raise ValueError(f"the chunk horizon (data.chunk_horizon) must be >= 1, got {info.chunk_horizon}")
+
+
+def gaussian_kl(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+    """``KL(N(mu, exp(logvar)) || N(0, I))`` summed over the last dim: ``[..., Z] -> [...]``.
+
+    Per dimension ``0.5 * (mu^2 + exp(logvar) - 1 - logvar)``.
+    """
+    return 0.5 * (mu.square() + logvar.exp() - 1.0 - logvar).sum(-1)
+
+
+class ACTModel(nn.Module):
+    """The ACT network (module docstring): plain tensors in and out.
+
+    Args:
+        cfg: the head's settings.
+        info: the data's dimensions, chunk horizon ``H`` and observation statistics.
+    """
+
+    def __init__(self, cfg: ACTConfig, info: DataInfo):
+        super().__init__()
+        _check_config(cfg, info)
+        d, self.horizon, self.action_dim = cfg.dim, int(info.chunk_horizon), info.action_dim
+        self.latent_dim = cfg.latent_dim
+        self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std) if cfg.normalize_obs else nn.Identity()
+
+        def layers(kind: type, n: int) -> nn.Module:
+            layer = kind(d, cfg.heads, cfg.ffn_dim, cfg.dropout, batch_first=True, norm_first=True)
+            if kind is nn.TransformerEncoderLayer:
+                return nn.TransformerEncoder(layer, n, norm=nn.LayerNorm(d), enable_nested_tensor=False)
+            return nn.TransformerDecoder(layer, n, norm=nn.LayerNorm(d))
+
+        # CVAE posterior q(z | obs, chunk)
+        self.cvae_cls = nn.Parameter(torch.randn(d) * 0.02)
+        self.cvae_obs = nn.Linear(info.obs_dim, d)
+        self.cvae_action = nn.Linear(info.action_dim, d)
+        self.cvae_pos = nn.Parameter(torch.randn(2 + self.horizon, d) * 0.02)
+        self.cvae_encoder = layers(nn.TransformerEncoderLayer, cfg.cvae_layers)
+        self.cvae_out = nn.Linear(d, 2 * cfg.latent_dim)
+        # Policy: [z, obs, task] -> encoder -> H queries -> decoder -> actions
+        self.latent_in = nn.Linear(cfg.latent_dim, d)
+        self.obs_in = nn.Linear(info.obs_dim, d)
+        self.task = TaskEncoder(cfg.task_conditioning, info.n_tasks, d)
+        self.token_pos = nn.Parameter(torch.randn(3, d) * 0.02)
+        self.encoder = layers(nn.TransformerEncoderLayer, cfg.enc_layers)
+        self.queries = nn.Parameter(torch.randn(self.horizon, d) * 0.02)
+        self.decoder = layers(nn.TransformerDecoderLayer, cfg.dec_layers)
+        self.head = nn.Linear(d, info.action_dim)
+
+    def posterior(
+        self, obs: torch.Tensor, chunk: torch.Tensor, chunk_valid: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and log-variance of ``q(z | obs, chunk)``.
+
+        Args:
+            obs: ``[N, D]`` normalised observations.
+            chunk: ``[N, H, A]`` expert action chunks.
+            chunk_valid: ``[N, H]`` bool, True on real chunk entries (the others are not attended to).
+
+        Returns:
+            ``mu``, ``logvar``: ``[N, Z]`` each.
+        """
+        n = obs.shape[0]
+        tokens = torch.cat(
+            [self.cvae_cls.expand(n, 1, -1), self.cvae_obs(obs)[:, None], self.cvae_action(chunk)], dim=1
+        )
+        tokens = tokens + self.cvae_pos
+        keep = torch.ones(n, 2, dtype=torch.bool, device=obs.device)
+        ignore = ~torch.cat([keep, chunk_valid], dim=1)  # [N, 2 + H], True: not attended to
+        out = self.cvae_encoder(tokens, src_key_padding_mask=ignore)
+        mu, logvar = self.cvae_out(out[:, 0]).chunk(2, dim=-1)
+        return mu, logvar
+
+    def decode(self, obs: torch.Tensor, task_id: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """The chunk ``[N, H, A]`` from normalised observations ``[N, D]``, task ids ``[N]`` and latents ``[N, Z]``."""
+        n = obs.shape[0]
+        tokens = torch.stack([self.latent_in(z), self.obs_in(obs), self.task(task_id)], dim=1) + self.token_pos
+        memory = self.encoder(tokens)
+        out = self.decoder(self.queries.expand(n, -1, -1), memory)
+        return self.head(out)
+
+    def forward(
+        self,
+        observation: torch.Tensor,
+        task_id: torch.Tensor,
+        action_chunk: torch.Tensor,
+        action_chunk_valid: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Training pass: posterior, a reparameterised sample of ``z``, the predicted chunk.
+
+        Args:
+            observation: ``[*B, D]`` raw observations.
+            task_id: ``[*B]`` int64.
+            action_chunk: ``[*B, H, A]`` expert chunks.
+            action_chunk_valid: ``[*B, H]`` bool, True on real chunk entries.
+
+        Returns:
+            ``chunk`` ``[*B, H, A]``, ``mu`` and ``logvar`` ``[*B, Z]``.
+        """
+        batch = observation.shape[:-1]
+        obs = self.norm(observation.reshape(-1, observation.shape[-1]))
+        chunk = action_chunk.reshape(-1, self.horizon, action_chunk.shape[-1])
+        mu, logvar = self.posterior(obs, chunk, action_chunk_valid.reshape(-1, self.horizon))
+        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp()
+        pred = self.decode(obs, task_id.reshape(-1), z)
+        return (
+            pred.reshape(*batch, self.horizon, self.action_dim),
+            mu.reshape(*batch, self.latent_dim),
+            logvar.reshape(*batch, self.latent_dim),
+        )
+
+    def predict_chunk(self, history: torch.Tensor, history_valid: torch.Tensor, task_id: torch.Tensor) -> torch.Tensor:
+        """Inference: the chunk ``[N, H, A]`` at ``z = 0`` from the current observation ``history[:, -1]``.
+
+        Args:
+            history: ``[N, K, D]`` observation window, oldest first (only the last entry is read).
+            history_valid: ``[N, K]`` bool (unused: the current observation is always real).
+            task_id: ``[N]`` int64.
+        """
+        obs = self.norm(history[:, -1])
+        z = obs.new_zeros(obs.shape[0], self.latent_dim)
+        return self.decode(obs, task_id, z)
+
+
+class ACTChunkLoss(LossModule):
+    """ACT's training loss, unreduced over the batch: per-element chunk L1 and a scalar KL term.
+
+    Written here rather than reusing ``torchrl.objectives.ACTLoss``: with ``reduction="none"``
+    torchrl's loss averages each chunk over all its entries (padding past the episode's end
+    included), returns the per-sample KL inside the main loss entry and ignores the validity
+    mask; TAR needs the chunk loss per element with its padding left to ``TARLoss``'s
+    ``event_valid`` average, and the KL term kept out of the per-step weighting.
+
+    Args:
+        model (ACTModel): the network (shared with the inference actor).
+
+    Keyword Args:
+        kl_weight (float): the KL term's weight (ACT: 10).
+
+    Input: a TensorDict of batch shape ``[*B]`` (``[B, L]`` segments in training) with the keys
+    of :class:`_AcceptedKeys`. It is not modified.
+
+    Output keys: ``loss_chunk`` ``[*B, H, A]`` (``|pred - target|``, 0 on padded chunk entries),
+    ``loss_kl`` (scalar, ``kl_weight`` times the mean KL over valid steps), and the detached
+    diagnostic ``kl`` (the unweighted mean KL).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tar_rl.policies import DataInfo
+        >>> model = ACTModel(ACTConfig(dim=16, heads=2), DataInfo(obs_dim=5, action_dim=2, n_tasks=3, chunk_horizon=4))
+        >>> data = TensorDict({"observation": torch.randn(2, 6, 5), "task_id": torch.zeros(2, 6, dtype=torch.long),
+        ...     "action_chunk": torch.zeros(2, 6, 4, 2), "action_chunk_valid": torch.ones(2, 6, 4, dtype=torch.bool)},
+        ...     [2, 6])
+        >>> out = ACTChunkLoss(model)(data)
+        >>> out["loss_chunk"].shape, out["loss_kl"].shape
+        (torch.Size([2, 6, 4, 2]), torch.Size([]))
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable input keys.
+
+        Attributes:
+            observation (NestedKey): ``[*B, D]`` observations. Defaults to ``"observation"``.
+            task_id (NestedKey): ``[*B]`` int64 task ids. Defaults to ``"task_id"``.
+            action_chunk (NestedKey): ``[*B, H, A]`` expert chunks (the target, and the CVAE
+                encoder's input). Defaults to ``"action_chunk"``.
+            action_chunk_valid (NestedKey): ``[*B, H]`` bool, True on real chunk entries.
+                Defaults to ``"action_chunk_valid"``.
+            valid (NestedKey): ``[*B]`` bool, True on real steps (the KL mean's mask; absent: every
+                step). Defaults to ``("collector", "mask")``.
+        """
+
+        observation: NestedKey = "observation"
+        task_id: NestedKey = "task_id"
+        action_chunk: NestedKey = "action_chunk"
+        action_chunk_valid: NestedKey = "action_chunk_valid"
+        valid: NestedKey = ("collector", "mask")
+
+        @property
+        def action(self) -> NestedKey:
+            """The expert target, for ``TARLoss``'s ``perturb_*`` controls: the action chunk."""
+            return self.action_chunk
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys = ["loss_chunk", "loss_kl", "kl"]
+    reduction = "none"
+
+    model: ACTModel
+
+    def __init__(self, model: ACTModel, *, kl_weight: float = 10.0):
+        if not (math.isfinite(kl_weight) and kl_weight >= 0):
+            raise ValueError(f"policy.kl_weight must be a finite number >= 0, got {kl_weight!r}")
+        super().__init__()
+        self.model = model
+        self.kl_weight = float(kl_weight)
+
+    @property
+    def functional(self) -> bool:
+        return False
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        k = self.tensor_keys
+        return [k.observation, k.task_id, k.action_chunk, k.action_chunk_valid, k.valid]
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        """The unreduced chunk loss and the scalar KL term (class docstring)."""
+        k = self.tensor_keys
+        target = tensordict.get(k.action_chunk)
+        chunk_valid = tensordict.get(k.action_chunk_valid)
+        batch = tensordict.batch_size
+        if chunk_valid.dtype != torch.bool or chunk_valid.shape != target.shape[:-1]:
+            raise ValueError(
+                f"{k.action_chunk_valid!r} must be torch.bool of shape {list(target.shape[:-1])}, "
+                f"got {chunk_valid.dtype} {list(chunk_valid.shape)}"
+            )
+        valid = tensordict.get(k.valid, None)
+        if valid is None:
+            valid = torch.ones(batch, dtype=torch.bool, device=target.device)
+        valid = valid.reshape(batch)
+        pred, mu, logvar = self.model(tensordict.get(k.observation), tensordict.get(k.task_id), target, chunk_valid)
+        error = (pred.float() - target.float()).abs()
+        error = torch.where(chunk_valid[..., None], error, torch.zeros((), dtype=error.dtype, device=error.device))
+        kl = gaussian_kl(mu.float(), logvar.float())
+        kl = torch.where(valid, kl, torch.zeros((), dtype=kl.dtype, device=kl.device)).sum() / valid.sum().clamp_min(1)
+        return TensorDict({"loss_chunk": error, "loss_kl": self.kl_weight * kl, "kl": kl.detach()}, batch_size=[])
+
+
+def _build_act(cfg: ACTConfig, info: DataInfo) -> Policy:
+    model = ACTModel(cfg, info)
+    actor = ChunkedActor(
+        model,
+        horizon=info.chunk_horizon,
+        history=1,
+        execution=cfg.execution,
+        execute_steps=cfg.execute_steps,
+        ensemble_decay=cfg.ensemble_decay,
+    )
+    return Policy(
+        actor=actor,
+        loss=ACTChunkLoss(model, kl_weight=cfg.kl_weight),
+        # "action" is not read by the loss; the recipe's weight recording plots its gripper entry.
+        keys=("observation", "task_id", "action", "action_chunk", "action_chunk_valid"),
+        event_valid="action_chunk_valid",
+        loss_key="loss_chunk",
+    )
+
+
+register_policy(
+    PolicySpec(
+        "act",
+        ACTConfig,
+        _build_act,
+        "ACT: CVAE transformer predicting action chunks (L1 + KL), temporal ensembling at inference",
+    )
+)
