@@ -11,6 +11,7 @@ from torch import nn
 from torchrl.objectives import BCLoss
 
 from . import DataInfo, Policy, PolicySpec, register_policy
+from .conditioning import TaskEncoder
 
 __all__ = ["MLPConfig", "MLPPolicy", "ObsNorm"]
 
@@ -41,7 +42,9 @@ class MLPConfig:
     Attributes:
         name: registry name.
         hidden: hidden layer widths.
-        task_conditioning: ``embedding`` (learned, ``task_dim`` wide), ``onehot`` or ``none``.
+        task_conditioning: ``embedding`` (learned, ``task_dim`` wide), ``instruction`` (the task's
+            instruction sentence as a learned bag of words, ``task_dim`` wide, see
+            :mod:`tar_rl.policies.conditioning`), ``onehot`` or ``none``.
         task_dim: width of the learned task embedding.
         normalize_obs: standardise observations with the training data's statistics.
     """
@@ -53,7 +56,7 @@ class MLPConfig:
     normalize_obs: bool = True
 
 
-_TASK_CONDITIONING = ("embedding", "onehot", "none")
+_TASK_CONDITIONING = ("embedding", "instruction", "onehot", "none")
 
 
 class MLPPolicy(nn.Module):
@@ -71,7 +74,7 @@ class MLPPolicy(nn.Module):
             )
         if not cfg.hidden or any(int(h) < 1 for h in cfg.hidden):
             raise ValueError(f"policy.hidden must be a non-empty list of positive widths, got {list(cfg.hidden)}")
-        if cfg.task_conditioning == "embedding" and cfg.task_dim < 1:
+        if cfg.task_conditioning in ("embedding", "instruction") and cfg.task_dim < 1:
             raise ValueError(f"policy.task_dim must be >= 1, got {cfg.task_dim}")
         self.conditioning = cfg.task_conditioning
         self.n_tasks = info.n_tasks
@@ -79,8 +82,13 @@ class MLPPolicy(nn.Module):
             self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std)
         else:
             self.norm = nn.Identity()
-        task_width = {"embedding": cfg.task_dim, "onehot": info.n_tasks, "none": 0}[self.conditioning]
-        self.task_embedding = nn.Embedding(info.n_tasks, cfg.task_dim) if self.conditioning == "embedding" else None
+        task_width = {"embedding": cfg.task_dim, "instruction": cfg.task_dim, "onehot": info.n_tasks, "none": 0}
+        task_width = task_width[self.conditioning]
+        # A plain nn.Embedding for "embedding" keeps the state-dict keys of earlier checkpoints.
+        self.task_embedding = {
+            "embedding": lambda: nn.Embedding(info.n_tasks, cfg.task_dim),
+            "instruction": lambda: TaskEncoder("instruction", info.n_tasks, cfg.task_dim),
+        }.get(self.conditioning, lambda: None)()
         layers: list[nn.Module] = []
         width = info.obs_dim + task_width
         for h in cfg.hidden:
@@ -91,7 +99,7 @@ class MLPPolicy(nn.Module):
 
     def forward(self, observation: torch.Tensor, task_id: torch.Tensor) -> torch.Tensor:
         x = self.norm(observation)
-        if self.conditioning == "embedding":
+        if self.task_embedding is not None:
             x = torch.cat([x, self.task_embedding(task_id)], dim=-1)
         elif self.conditioning == "onehot":
             x = torch.cat([x, nn.functional.one_hot(task_id, self.n_tasks).to(x.dtype)], dim=-1)
