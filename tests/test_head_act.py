@@ -14,13 +14,12 @@ import pickle
 import pandas as pd
 import pytest
 import torch
-from hydra import compose, initialize
+from recipe_helpers import tiny
 from tensordict import TensorDict
 
 from tar_rl import TARLoss
 from tar_rl.policies import POLICIES, ACTConfig, DataInfo, build_policy
-from tar_rl.recipes.config import register_configs
-from tar_rl.recipes.offline_bc import policy_from_checkpoint, resolve_config, train
+from tar_rl.recipes.offline_bc import policy_from_checkpoint, train
 from tar_rl.runs import load_checkpoint
 
 INFO = DataInfo(obs_dim=3, action_dim=2, n_tasks=2, chunk_horizon=3)
@@ -260,33 +259,19 @@ def test_bad_settings_name_the_setting(setting, value):
 # -- Through the recipe -------------------------------------------------------------------------
 
 
-def test_smoke_job_through_the_recipe(tmp_path):
-    register_configs()
-    overrides = [
+@pytest.mark.slow
+def test_smoke_job_through_the_recipe(tmp_path, data_root):
+    config = tiny(
+        tmp_path,
+        data_root,
         "policy=act",
-        "data.tasks=[reach]",
-        "data.n_demos=2",
-        "data.workers=1",
-        f"data.root={tmp_path / 'datasets'}",
-        "data.batch_segments=4",
-        "data.slice_len=8",
-        "data.chunk_horizon=4",
         "policy.dim=16",
-        "policy.heads=2",
         "policy.ffn_dim=32",
+        "data.chunk_horizon=4",
         "optim.steps=20",
-        "optim.warmup=2",
-        "logging.every=5",
-        "logging.checkpoint_every=10",
-        "logging.progress=false",
         "logging.record_weights_at=[-1]",
-        "eval.rollouts=1",
         "eval.horizon=15",
-        "eval.workers=1",
-        f"runs_root={tmp_path / 'runs'}",
-    ]
-    with initialize(version_base="1.3", config_path=None):
-        config = resolve_config(compose(config_name="train", overrides=overrides))
+    )
     run_dir = train(config)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["finished"] and summary["steps"] == 20 and run_dir.name.startswith("tar-act-")
