@@ -160,6 +160,21 @@ def test_padded_chunk_entries_do_not_reach_the_posterior():
     assert not torch.isclose(kl[0], kl[2])
 
 
+def test_latent_is_sampled_in_training_and_the_posterior_mean_in_eval():
+    policy = tiny_policy()
+    with torch.no_grad():  # a posterior with unit variance: samples move the prediction
+        policy.actor.model.cvae_out.bias[2:] = 0.0
+    data = batch_1x2()
+    with torch.no_grad():
+        first, second = policy.loss(data)["loss_chunk"], policy.loss(data)["loss_chunk"]
+        assert not torch.equal(first, second)
+        policy.loss.eval()
+        state = torch.get_rng_state()
+        first, second = policy.loss(data)["loss_chunk"], policy.loss(data)["loss_chunk"]
+        assert torch.equal(first, second)
+        assert torch.equal(torch.get_rng_state(), state)  # no random numbers drawn
+
+
 def test_loss_never_mutates_its_input():
     policy = tiny_policy()
     data = batch_1x2()

@@ -202,6 +202,10 @@ class ACTModel(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Training pass: posterior, a reparameterised sample of ``z``, the predicted chunk.
 
+        In ``eval()`` mode ``z`` is the posterior mean instead of a sample, so that a loss computed
+        for inspection (the recipe's per-step loss along demonstrations) is deterministic and draws
+        no random numbers.
+
         Args:
             observation: ``[*B, D]`` raw observations.
             task_id: ``[*B]`` int64.
@@ -215,7 +219,7 @@ class ACTModel(nn.Module):
         obs = self.norm(observation.reshape(-1, observation.shape[-1]))
         chunk = action_chunk.reshape(-1, self.horizon, action_chunk.shape[-1])
         mu, logvar = self.posterior(obs, chunk, action_chunk_valid.reshape(-1, self.horizon))
-        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp()
+        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if self.training else mu
         pred = self.decode(obs, task_id.reshape(-1), z)
         return (
             pred.reshape(*batch, self.horizon, self.action_dim),
