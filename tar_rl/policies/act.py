@@ -53,8 +53,10 @@ class ACTConfig:
     The defaults keep ACT's structure at a size that trains on CPU: a step on ``[64, 16]``
     segments runs every transformer over ``64 * 16 = 1024`` samples (``H + 2`` CVAE tokens, 3
     encoder tokens and ``H`` decoder queries each), so width and depth set the cost directly.
-    ACT itself uses width 512, 8 heads, 4 encoder and 7 decoder layers (of which its code uses
-    the first, a known quirk), latent 32, dropout 0.1, KL weight 10.
+    ACT itself uses width 512, 8 heads, 4 CVAE and 4 encoder layers, 7 decoder layers of which
+    its code uses only the first (LeRobot's ACT config, after tonyzhaozh/act issue 25), latent
+    32, dropout 0.1, KL weight 10. Measured here (torch 2.13 CPU, one thread, shared 2-core
+    machine): a step of the defaults on ``[64, 16]`` segments takes about 10 times the MLP head's.
 
     Attributes:
         name: registry name.
