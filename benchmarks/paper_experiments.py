@@ -15,7 +15,7 @@ Commands (each runs what it needs, skipping finished runs, then writes its table
   and overall, 100 x Fast20, 100 x NEPS, baseline vs TAR, the paired difference over seeds, its 95%
   confidence interval (t quantile) and the paired t-test's p-value (``table_I.md``,
   ``table_I.csv``, ``paired.csv``); Fig. 3 (``fig3_success_vs_neps.png``: arrows uniform -> TAR per
-  family) and Fig. 4 (``fig4_radar.png``).
+  family; ``fig3c_group_deltas.png``: Δ success and Δ Fast20 per group) and Fig. 4 (``fig4_radar.png``).
 * ``controls``: Table III for the scale's control family: every registered weighting (uniform, tar,
   shuffle, random, invert, perturb_high, perturb_low) on the control seeds (``table_III.md/.csv``).
 * ``critical_windows``: from the TAR runs' recorded weights (``weights.csv``, the last training
@@ -490,7 +490,14 @@ def _missing_note(missing: Sequence[str]) -> str:
 def report_table(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, Path]:
     """Table I (markdown + CSV), the paired statistics, Fig. 3 and Fig. 4 from the protocol runs."""
     from tar_rl.io import write_csv_atomic
-    from tar_rl.report import compare, paired_table, plot_radar, plot_success_vs_neps, table_one_markdown
+    from tar_rl.report import (
+        compare,
+        paired_table,
+        plot_group_deltas,
+        plot_radar,
+        plot_success_vs_neps,
+        table_one_markdown,
+    )
 
     runs, missing = _load(specs)
     if not runs:
@@ -520,6 +527,7 @@ def report_table(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, P
     out["fig3"] = plot_success_vs_neps(
         table[table["objective"].isin([BASELINE, TREATMENT])], folder / "fig3_success_vs_neps.png", caption=caption
     )
+    out["fig3c"] = plot_group_deltas(paired, folder / "fig3c_group_deltas.png", TREATMENT, caption=caption)
     try:
         out["fig4"] = plot_radar(table, folder / "fig4_radar.png", TREATMENT, caption=caption)
     except ValueError as err:

@@ -62,6 +62,7 @@ __all__ = [
     "phase_weight_mass",
     "plot_critical_windows",
     "plot_group_bars",
+    "plot_group_deltas",
     "plot_heatmaps",
     "plot_lines",
     "plot_radar",
@@ -1650,3 +1651,57 @@ def plot_heatmaps(
                 ax.text(j, i, "-" if not np.isfinite(v) else f"{v:+.1f}", ha="center", va="center", fontsize=8)
     fig.suptitle(title, fontsize=10)
     return _save_png(fig, path, caption or title)
+
+
+def plot_group_deltas(
+    paired: pd.DataFrame, path: str | os.PathLike, objective: str = "tar", caption: str | None = None
+) -> Path:
+    """The paper's Fig. 3(c): per difficulty group, Δ success (bars) and Δ 100 x Fast20 (line).
+
+    Bars: the paired difference of success (objective - baseline, percentage points), averaged over
+    policies; error bars: the 95% CI over seeds with one policy, the std over policies with several
+    (the paper's across-family variability). Line (right axis): baseline - objective of 100 x Fast20
+    (positive = the objective is faster), averaged over policies.
+
+    Args:
+        paired: a :func:`paired_table`.
+        path: the PNG to write (atomically).
+        objective: the treatment shown.
+        caption: provenance text for the footer.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        ValueError: no rows for ``objective``.
+    """
+    rows = paired[(paired["objective"] == objective) & (paired["n_pairs"] > 0)]
+    if rows.empty:
+        raise ValueError(f"no paired rows for objective {objective!r}: nothing to plot")
+    levels = [lv for lv in dict.fromkeys(rows["level"]) if lv != "overall"] + ["overall"]
+    policies = sorted(rows["policy"].unique())
+    bars, errs, line = [], [], []
+    for level in levels:
+        s = rows[(rows["metric"] == "success") & (rows["level"] == level)]
+        f = rows[(rows["metric"] == "fast20") & (rows["level"] == level)]
+        bars.append(float(s["delta_mean"].mean()) if len(s) else math.nan)
+        if len(policies) == 1 and len(s):
+            errs.append(_zero_nan(float(s["ci_high"].iloc[0] - s["delta_mean"].iloc[0])))
+        else:
+            errs.append(_zero_nan(float(s["delta_mean"].std(ddof=1))) if len(s) > 1 else 0.0)
+        line.append(-float(f["delta_mean"].mean()) if len(f) else math.nan)
+    fig = _new_figure(6.5, 4.2)
+    fig.subplots_adjust(left=0.12, right=0.87, top=0.9, bottom=0.17)
+    ax = fig.add_subplot()
+    x = np.arange(len(levels))
+    ax.bar(x, np.nan_to_num(bars), yerr=errs, capsize=3, color="C0", alpha=0.8)
+    ax.axhline(0, color="0.3", linewidth=0.8)
+    ax_f = ax.twinx()
+    ax_f.plot(x, line, color="C3", marker="o")
+    ax.set_xticks(x, [lv.replace("_", " ") for lv in levels])
+    ax.set_ylabel(f"Δ success ({objective} - {BASELINE}, pp)")
+    ax_f.set_ylabel(f"Δ 100 x Fast20 ({BASELINE} - {objective})", color="C3")
+    spread = "95% CI over seeds" if len(policies) == 1 else f"std over {len(policies)} policies"
+    ax.set_title(f"Per-group effect of {objective} (bars: mean, error: {spread})", fontsize=10)
+    ax.grid(True, axis="y", alpha=0.3)
+    return _save_png(fig, path, caption or f"paired differences, {len(policies)} policies")

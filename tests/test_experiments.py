@@ -33,6 +33,7 @@ from tar_rl.report import (
     phase_labels,
     phase_weight_mass,
     plot_critical_windows,
+    plot_group_deltas,
     plot_heatmaps,
     plot_lines,
     plot_radar,
@@ -267,6 +268,10 @@ def test_radar_draws_with_infinite_neps(sweep, tmp_path):
     table = compare(sweep)
     table.loc[table["objective"] == "uniform", "neps_overall_mean"] = math.inf
     assert plot_radar(table, tmp_path / "radar.png").read_bytes()[:8] == PNG_MAGIC
+    paired = paired_table(sweep)
+    assert plot_group_deltas(paired, tmp_path / "deltas.png").read_bytes()[:8] == PNG_MAGIC
+    with pytest.raises(ValueError, match="no paired rows for objective 'shuffle'"):
+        plot_group_deltas(paired, tmp_path / "d2.png", "shuffle")
     with pytest.raises(ValueError, match="no policy has both"):
         plot_radar(table[table["objective"] == "tar"], tmp_path / "r2.png")
 
@@ -292,7 +297,14 @@ def ci_out(tmp_path_factory, bench):
 def test_ci_scale_writes_every_table_and_figure(ci_out):
     res, _ = ci_out
     expected = {
-        "table": ["table_I.md", "table_I.csv", "paired.csv", "fig3_success_vs_neps.png", "fig4_radar.png"],
+        "table": [
+            "table_I.md",
+            "table_I.csv",
+            "paired.csv",
+            "fig3_success_vs_neps.png",
+            "fig3c_group_deltas.png",
+            "fig4_radar.png",
+        ],
         "controls": ["table_III.md", "table_III.csv", "paired.csv"],
         "critical_windows": ["critical_windows.md", "critical_windows.csv", "critical_windows.png", "fig5_weights.png"],
         "budget": ["budget.md", "budget.csv", "budget.png"],
