@@ -383,32 +383,35 @@ def execute(scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_d
     workers = max(1, (os.cpu_count() or 1) // jobs)
     queue, running = list(todo), []
     done = 0
-    while queue or running:
-        while queue and len(running) < jobs:
-            spec = queue.pop(0)
-            cmd = [
-                sys.executable,
-                "-m",
-                "tar_rl",
-                "train",
-                *spec.overrides,
-                f"eval.workers={workers}",
-                "data.workers=1",
-            ]
-            log = open(log_dir / f"{spec.run_dir.name}.log", "a")
-            running.append((spec, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
-        time.sleep(1.0)
-        for item in list(running):
-            spec, proc, log = item
+    try:
+        while queue or running:
+            while queue and len(running) < jobs:
+                spec = queue.pop(0)
+                cmd = [sys.executable, "-m", "tar_rl", "train", *spec.overrides]
+                cmd += [f"eval.workers={workers}", "data.workers=1"]
+                log = open(log_dir / f"{spec.run_dir.name}.log", "a")
+                running.append((spec, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
+            time.sleep(1.0)
+            for item in list(running):
+                spec, proc, log = item
+                if proc.poll() is None:
+                    continue
+                running.remove(item)
+                log.close()
+                done += 1
+                status = "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode}, see {log.name})"
+                print(f"[{done}/{len(todo)}] {spec.run_dir.name}: {status}", flush=True)
+                if proc.returncode != 0:
+                    failed.append(spec)
+    finally:  # interrupted: stop the runs in flight (they resume from their last checkpoint next time)
+        for _spec, proc, log in running:
             if proc.poll() is None:
-                continue
-            running.remove(item)
+                proc.terminate()
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
             log.close()
-            done += 1
-            status = "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode}, see {log.name})"
-            print(f"[{done}/{len(todo)}] {spec.run_dir.name}: {status}", flush=True)
-            if proc.returncode != 0:
-                failed.append(spec)
     return failed
 
 
