@@ -25,6 +25,7 @@ from test_report import ROLLOUTS, write_run
 from tar_rl.report import (
     PHASES,
     compare,
+    controls_markdown,
     critical_windows,
     expand_run_dirs,
     load_run,
@@ -154,6 +155,11 @@ def test_paired_table_hand_values(sweep):
     assert n["delta_mean"] == pytest.approx(((63.3333 - 203.3333) + (58.3333 - 98.0)) / 2, abs=1e-3)
     md = table_one_markdown(paired)
     assert "+25.00 [-133.83, +183.83]" in md and "| 0.295 |" in md and "| mlp | tar | 2 |" in md
+    # Table III pools each objective over all its seeds (tar: 0, 1, 2): easy 100, 75, 0 -> 58.3, sd
+    # sqrt((41.67^2 + 16.67^2 + 58.33^2) / 2) = 52.0; hard 50, 75, 0 -> 41.7 ± 38.2; overall 75, 75, 0 -> 50.0 ± 43.3.
+    controls = controls_markdown(paired, compare(sweep), "mlp")
+    row = "| tar | 3 | 58.3 ± 52.0 | 41.7 ± 38.2 | 50.0 ± 43.3 | +25.00 [-133.83, +183.83] (n=2) | 0.295 |"
+    assert row in controls and "| uniform | 2 | 62.5 ± 17.7 | 37.5 ± 17.7 | 50.0 ± 17.7 | - | - |" in controls
 
 
 def test_paired_table_skips_infinite_neps_pairs(tmp_path):
