@@ -13,6 +13,13 @@ the largest ``step``), never read back from the summary.
   :func:`plot_weights` (Fig. 5) write PNG figures atomically, with the run names and git commits in a
   footer.
 * :func:`main` is the body of ``tar-rl report RUN_DIR... [--out DIR]``.
+* For the paper's experiments (``benchmarks/paper_experiments.py``): :func:`paired_t` and
+  :func:`paired_table` (paired differences over seeds, 95% CI, paired t-test),
+  :func:`table_one_markdown` (Table I) and :func:`controls_markdown` (Table III),
+  :func:`plot_group_deltas` (Fig. 3(c)), :func:`plot_radar` (Fig. 4), :func:`phase_labels`,
+  :func:`phase_weight_mass` and :func:`critical_windows` (where TAR's weight mass lies along a
+  demonstration, anchored at the gripper-closing step), :func:`plot_weight_phases` (Fig. 5 with
+  phases), :func:`plot_critical_windows`, :func:`plot_lines` and :func:`plot_heatmaps`.
 
 Matplotlib is imported only by the plotting functions, which draw with the Agg canvas directly
 (``matplotlib.figure.Figure`` + ``FigureCanvasAgg``): no display is needed and a caller's pyplot
