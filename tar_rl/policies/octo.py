@@ -529,7 +529,15 @@ class ChunkLoss(LossModule):
         return TensorDict({self.loss_name: loss}, batch_size=[])
 
 
-CHUNK_KEYS = ("observation_history", "observation_history_valid", "task_id", "action_chunk", "action_chunk_valid")
+# "action" is not read by the loss: the recipe's weight recording plots its gripper dimension.
+CHUNK_KEYS = (
+    "observation_history",
+    "observation_history_valid",
+    "task_id",
+    "action_chunk",
+    "action_chunk_valid",
+    "action",
+)
 
 
 def chunked_policy(model: nn.Module, cfg: OctoConfig, info: DataInfo, loss_name: str) -> Policy:
