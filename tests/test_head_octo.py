@@ -157,6 +157,29 @@ def test_per_step_loss_is_per_chunk_element_and_never_reduced(name):
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in policy.actor.parameters())
 
 
+@pytest.mark.parametrize("control", ["perturb_high", "perturb_low"])
+def test_perturbation_controls_corrupt_the_chunk_the_head_learns_from(control):
+    torch.manual_seed(0)
+    policy = build_policy(small("octo_linear"), INFO)
+    loss = TARLoss(policy.loss, control, perturb_fraction=0.5, perturb_scale=0.3)
+    loss.set_keys(event_valid=policy.event_valid)
+    assert loss.tensor_keys.action == "action_chunk"
+    batch = segment_batch()
+    seen = []
+    step_loss = policy.loss.model.step_loss
+
+    def spy(history, history_valid, task_id, chunk):
+        seen.append(chunk.clone())
+        return step_loss(history, history_valid, task_id, chunk)
+
+    policy.loss.model.step_loss = spy
+    out = loss(batch)
+    # the clean pass (which steps to corrupt), then the pass on the corrupted copy
+    changed = (seen[-1] != batch["action_chunk"]).flatten(-2).all(-1)  # [B, L]: whole chunks are corrupted
+    assert changed.any() and float(out["perturbed_fraction"]) > 0
+    assert torch.equal(seen[-1][~changed], batch["action_chunk"][~changed])
+
+
 def test_octo_linear_loss_is_the_squared_error_of_its_chunk():
     torch.manual_seed(0)
     policy = build_policy(small("octo_linear"), INFO)

@@ -487,13 +487,15 @@ class ChunkLoss(LossModule):
             observation_history: ``[B, L, K, D]`` observation window, oldest first.
             observation_history_valid: ``[B, L, K]`` bool, True on real observations.
             task_id: ``[B, L]`` int64 task index.
-            action_chunk: ``[B, L, H, A]`` the next ``H`` expert actions.
+            action: the regression target, by default ``action_chunk`` ``[B, L, H, A]`` (the next
+                ``H`` expert actions). Named ``action`` so that ``TARLoss``'s ``perturb_*`` controls
+                find it and corrupt the chunk the head learns from.
         """
 
         observation_history: str = "observation_history"
         observation_history_valid: str = "observation_history_valid"
         task_id: str = "task_id"
-        action_chunk: str = "action_chunk"
+        action: str = "action_chunk"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -512,7 +514,7 @@ class ChunkLoss(LossModule):
     @property
     def in_keys(self) -> list:
         k = self.tensor_keys
-        return [k.observation_history, k.observation_history_valid, k.task_id, k.action_chunk]
+        return [k.observation_history, k.observation_history_valid, k.task_id, k.action]
 
     @property
     def out_keys(self) -> list:
@@ -524,7 +526,7 @@ class ChunkLoss(LossModule):
             tensordict.get(k.observation_history),
             tensordict.get(k.observation_history_valid),
             tensordict.get(k.task_id),
-            tensordict.get(k.action_chunk),
+            tensordict.get(k.action),
         )
         return TensorDict({self.loss_name: loss}, batch_size=[])
 
