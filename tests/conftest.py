@@ -19,6 +19,12 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+@pytest.fixture(scope="session")
+def data_root(tmp_path_factory):
+    """One dataset folder for the whole session: tiny datasets are collected once and reused."""
+    return tmp_path_factory.mktemp("datasets")
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _single_thread():
     """Run each test module on one intra-op thread, restored afterwards.

@@ -38,3 +38,17 @@ def test_embedding_encoder_and_bad_kind():
     torch.testing.assert_close(enc(torch.tensor([3])), enc.embedding.weight[3:4])
     with pytest.raises(ValueError, match="task_conditioning"):
         TaskEncoder("text", 50, 4)
+
+
+def test_mlp_head_takes_the_instruction_conditioning():
+    from tar_rl.policies import DataInfo, build_policy
+
+    torch.manual_seed(0)
+    policy = build_policy({"name": "mlp", "task_conditioning": "instruction", "hidden": [16]}, DataInfo())
+    net = policy.actor.module
+    assert isinstance(net.task_embedding, TaskEncoder) and net.task_embedding.kind == "instruction"
+    obs = torch.zeros(2, 39)
+    a = net(obs, torch.tensor([TASKS.index("push-v3"), TASKS.index("reach-v3")]))
+    assert a.shape == (2, 4) and not torch.equal(a[0], a[1])  # same observation, different instructions
+    a.sum().backward()
+    assert net.task_embedding.words.weight.grad.abs().sum() > 0

@@ -20,6 +20,7 @@ import torch
 from hydra import compose, initialize
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigAttributeError, ValidationError
+from recipe_helpers import TASK, compose_config, tiny
 from tar_reference import ref_tar_segment
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
@@ -38,49 +39,10 @@ from tar_rl.recipes.offline_bc import (
     make_optimizer,
     make_policy,
     record_weights,
-    resolve_config,
     train,
     validate,
 )
 from tar_rl.runs import CHECKPOINT, load_checkpoint
-
-TASK = "reach"
-
-
-def compose_config(*overrides: str) -> dict:
-    register_configs()
-    with initialize(version_base="1.3", config_path=None):
-        return resolve_config(compose(config_name="train", overrides=list(overrides)))
-
-
-@pytest.fixture(scope="module")
-def data_root(tmp_path_factory):
-    return tmp_path_factory.mktemp("datasets")
-
-
-def tiny(tmp_path: Path, data_root: Path, *overrides: str) -> dict:
-    """A 30-step job on the shared tiny dataset, evaluated with one 20-step rollout."""
-    return compose_config(
-        f"data.tasks=[{TASK}]",
-        "data.n_demos=2",
-        "data.workers=1",
-        f"data.root={data_root}",
-        "data.batch_segments=8",
-        "data.slice_len=8",
-        "policy.hidden=[32,32]",
-        "optim.steps=30",
-        "optim.warmup=5",
-        "logging.every=5",
-        "logging.checkpoint_every=10",
-        "logging.progress=false",
-        "logging.record_weights_at=[]",
-        "eval.rollouts=1",
-        "eval.horizon=20",
-        "eval.workers=1",
-        f"runs_root={tmp_path / 'runs'}",
-        *overrides,
-    )
-
 
 # -- Config -------------------------------------------------------------------------------------
 

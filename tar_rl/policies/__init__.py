@@ -56,6 +56,7 @@ class DataInfo:
         obs_mean, obs_std: per-dimension observation statistics of the training data.
         chunk_horizon: the dataset's ``action_chunk`` horizon ``H``.
         history: the dataset's ``observation_history`` window ``K``.
+        image_size: the side ``S`` of the dataset's ``pixels`` (0: a state-only dataset).
     """
 
     obs_dim: int = 39
@@ -65,6 +66,7 @@ class DataInfo:
     obs_std: tuple[float, ...] | None = None
     chunk_horizon: int = 1
     history: int = 1
+    image_size: int = 0
 
     @classmethod
     def from_metadata(cls, metadata: dict) -> DataInfo:
@@ -77,6 +79,7 @@ class DataInfo:
             obs_std=tuple(stats["std"]),
             chunk_horizon=int(metadata["chunk_horizon"]),
             history=int(metadata.get("history", 1)),
+            image_size=int(metadata.get("image_size", 0)),
         )
 
     def to_dict(self) -> dict:

@@ -1,0 +1,47 @@
+"""Helpers shared by the recipe tests: compose a config as `tar-rl train` does, and a tiny job."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra import compose, initialize
+
+from tar_rl.recipes.config import register_configs
+from tar_rl.recipes.offline_bc import resolve_config
+
+TASK = "reach"
+
+
+def compose_config(*overrides: str) -> dict:
+    register_configs()
+    with initialize(version_base="1.3", config_path=None):
+        return resolve_config(compose(config_name="train", overrides=list(overrides)))
+
+
+def tiny(tmp_path: Path, data_root: Path, *overrides: str) -> dict:
+    """A 30-step job on the shared tiny dataset (``data_root``), evaluated with one 20-step rollout.
+
+    The MLP head (the default) gets two hidden layers of 32; another head (``policy=<name>``
+    among the overrides) keeps its defaults.
+    """
+    head = [] if any(o.startswith("policy=") for o in overrides) else ["policy.hidden=[32,32]"]
+    return compose_config(
+        f"data.tasks=[{TASK}]",
+        "data.n_demos=2",
+        "data.workers=1",
+        f"data.root={data_root}",
+        "data.batch_segments=8",
+        "data.slice_len=8",
+        *head,
+        "optim.steps=30",
+        "optim.warmup=5",
+        "logging.every=5",
+        "logging.checkpoint_every=10",
+        "logging.progress=false",
+        "logging.record_weights_at=[]",
+        "eval.rollouts=1",
+        "eval.horizon=20",
+        "eval.workers=1",
+        f"runs_root={tmp_path / 'runs'}",
+        *overrides,
+    )
