@@ -175,9 +175,30 @@ def test_perturbation_controls_corrupt_the_chunk_the_head_learns_from(control):
     policy.loss.model.step_loss = spy
     out = loss(batch)
     # the clean pass (which steps to corrupt), then the pass on the corrupted copy
-    changed = (seen[-1] != batch["action_chunk"]).flatten(-2).all(-1)  # [B, L]: whole chunks are corrupted
+    clean = batch["action_chunk"].clone()
+    clean[:, -1, 2:] = clean[:, -1, 1:2]  # padded entries hold the last valid action (segment_batch)
+    assert torch.equal(seen[0], clean)
+    changed = (seen[-1] != clean).flatten(-2).any(-1)  # [B, L]
     assert changed.any() and float(out["perturbed_fraction"]) > 0
-    assert torch.equal(seen[-1][~changed], batch["action_chunk"][~changed])
+    assert torch.equal(seen[-1][~changed], clean[~changed])
+    assert ((seen[-1] != clean).flatten(-2).sum(-1)[changed] >= 2 * A).all()  # whole valid chunks corrupted
+
+
+def test_padded_chunk_entries_hold_the_last_valid_action_before_the_head_sees_them():
+    torch.manual_seed(0)
+    policy = build_policy(small("flow"), INFO)
+    seen = []
+    policy.loss.model.step_loss = lambda h, hv, t, chunk: seen.append(chunk) or torch.zeros(chunk.shape)
+    batch = segment_batch()
+    valid = batch["action_chunk_valid"]
+    valid[0, 0, 1:] = False
+    valid[1, 2, :] = False  # no valid entry: the first one is held
+    policy.loss(batch)
+    expected = batch["action_chunk"].clone()
+    expected[:, -1, 2:] = expected[:, -1, 1:2]
+    expected[0, 0, 1:] = expected[0, 0, 0]
+    expected[1, 2, 1:] = expected[1, 2, 0]
+    assert torch.equal(seen[0], expected)
 
 
 def test_octo_linear_loss_is_the_squared_error_of_its_chunk():
@@ -185,8 +206,9 @@ def test_octo_linear_loss_is_the_squared_error_of_its_chunk():
     policy = build_policy(small("octo_linear"), INFO)
     batch = segment_batch()
     pred = policy.loss.model(batch["observation_history"], batch["observation_history_valid"], batch["task_id"])
-    expected = (pred - batch["action_chunk"]) ** 2
-    torch.testing.assert_close(policy.loss(batch)["loss_octo_linear"], expected)
+    target = batch["action_chunk"].clone()
+    target[:, -1, 2:] = target[:, -1, 1:2]  # padded entries hold the last valid action
+    torch.testing.assert_close(policy.loss(batch)["loss_octo_linear"], (pred - target) ** 2)
 
 
 # -- Diffusion -------------------------------------------------------------------------------
@@ -249,7 +271,7 @@ def test_ddpm_step_is_the_posterior_mean_plus_its_standard_deviation():
     beta = 1 - ab[t] / ab[t - 1]
     mean = (x - beta / (1 - ab[t]).sqrt() * eps) / (1 - beta).sqrt()
     var = (1 - ab[t - 1]) / (1 - ab[t]) * beta
-    z = torch.randn(5, H, A, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    z = torch.randn(1, H, A, generator=torch.Generator().manual_seed(9), dtype=torch.float64)  # shared by the rows
     x_prev = mean + var.sqrt() * z
     # ... then the last step (t - 1 -> 0 clean) returns its predicted clean chunk
     expected = (x_prev - (1 - ab[t - 1]).sqrt() * eps) / ab[t - 1].sqrt()
@@ -326,22 +348,50 @@ def _rollout(actor, steps: int = 3) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("name", ["octo_diffusion", "flow"])
-@pytest.mark.parametrize("copier", ["pickle", "deepcopy"])
+@pytest.mark.parametrize("copier", ["pickle", "deepcopy", "state_dict"])
 def test_sampling_is_deterministic_given_the_seed_and_a_copy_gives_the_same_actions(name, copier):
     torch.manual_seed(0)
     actor = build_policy(small(name), INFO).actor.eval()
-    clone = (lambda m: pickle.loads(pickle.dumps(m))) if copier == "pickle" else copy.deepcopy
+
+    def clone(m):
+        if copier == "pickle":
+            return pickle.loads(pickle.dumps(m))
+        if copier == "deepcopy":
+            return copy.deepcopy(m)
+        torch.manual_seed(1)
+        other = build_policy(small(name), INFO).actor.eval()  # other weights, then the saved ones
+        other.load_state_dict(m.state_dict())
+        return other
+
     fresh = clone(actor)  # before any sampling
     first = _rollout(actor)
     assert torch.isfinite(first).all() and first.abs().max() <= 1
     assert torch.equal(_rollout(fresh), first)
-    assert torch.equal(_rollout(clone(actor)), first)  # a copy after sampling starts again from the seed
-    assert not torch.equal(_rollout(actor), first)  # the original's generator moved on
+    assert torch.equal(_rollout(clone(actor)), first)  # a copy made after sampling
+    assert torch.equal(_rollout(actor), first)  # no sampling state: the same again
     torch.manual_seed(123)  # the global RNG plays no part at inference
     assert torch.equal(_rollout(clone(fresh)), first)
     torch.manual_seed(0)
     other = build_policy(small(name, seed=1), INFO).actor.eval()
     assert not torch.equal(_rollout(other), first)  # another seed, other noise (same weights)
+
+
+@pytest.mark.parametrize("name", ["octo_diffusion", "flow"])
+def test_a_rows_chunk_depends_on_its_own_inputs_only(name):
+    """Not on its slot in the batch or the batch size (a sharded evaluation acts like one process)."""
+    torch.manual_seed(0)
+    model = build_policy(small(name), INFO).loss.model.eval()
+    g = torch.Generator().manual_seed(2)
+    history = torch.randn(6, K, D, generator=g)
+    valid = torch.ones(6, K, dtype=torch.bool)
+    valid[2, 0] = False
+    task = torch.tensor([1, 2, 3, 4, 5, 6])
+    batch = model.predict_chunk(history, valid, task)
+    for i in (0, 2, 5):
+        alone = model.predict_chunk(history[i : i + 1], valid[i : i + 1], task[i : i + 1])
+        torch.testing.assert_close(alone[0], batch[i], rtol=1e-5, atol=1e-6)
+    flipped = model.predict_chunk(history.flip(0), valid.flip(0), task.flip(0))
+    torch.testing.assert_close(flipped.flip(0), batch, rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("sampler", ["ddim", "ddpm"])

@@ -15,8 +15,9 @@ action expert, Black et al. 2024) predicts a velocity field:
   by inversion of its CDF ``tau ** 1.5``, then mapped to ``0.001 + 0.999 * tau`` as openpi does)
   or ``uniform`` (``U(0.001, 1)``). Per-step loss: the velocity regression squared error per chunk
   element ``[B, L, H, A]``. ``tau`` and the noise come from torch's global RNG.
-* inference: start from ``x_1 ~ N(0, I)`` (a generator seeded with ``seed``, dropped on
-  pickling, so every copy starts from the seed) and take ``sample_steps`` Euler steps
+* inference: start from ``x_1 ~ N(0, I)`` (drawn at every call from a generator seeded with
+  ``seed`` and shared by the batch's rows, as in ``tar_rl.policies.octo``: the chunk is a
+  deterministic function of the row's inputs and the seed) and take ``sample_steps`` Euler steps
   ``x <- x - v(x, tau) / sample_steps`` from ``tau = 1`` to 0; the result is clipped to ``[-1, 1]``.
 """
 
@@ -144,9 +145,8 @@ class FlowPolicy(SeededSampling):
     def predict_chunk(self, history, history_valid, task_id) -> torch.Tensor:
         features = self.backbone(history, history_valid, task_id)
         n = features.shape[0]
-        x = torch.randn(
-            n, self.horizon, self.action_dim, generator=self.generator(features.device), device=features.device
-        )
+        gen = self.sampling_generator(features.device)
+        x = self.initial_noise(n, (self.horizon, self.action_dim), gen, features.device)
         x = euler_integrate(lambda x, tau: self.velocity(x, tau, features), x, self.sample_steps)
         return x.clamp(-1.0, 1.0)
 

@@ -29,10 +29,13 @@ are shared):
   step), the predicted clean chunk clipped to ``[-1, 1]`` at every step.
 
 Training noise and diffusion steps come from torch's global RNG (the recipe checkpoints it, so a
-resumed run draws the same ones). Sampling noise at inference comes from a generator seeded with
-the config's ``seed``, created on first use and dropped when the model is pickled or deep-copied,
-so every copy (an evaluation worker) starts from the same seed: a copy's actions are a function
-of the seed and its inputs.
+resumed run draws the same ones). Sampling noise at inference is drawn, at every call, from a
+generator seeded with the config's ``seed`` and shared by the rows of the batch: the sampled chunk
+is a deterministic function of the row's own inputs and the seed, whatever the batch size, the
+row's slot, the calls before or the copy (pickled evaluation worker, reloaded state dict) that
+runs it. So a sharded evaluation reproduces a single process's rollouts, and the policy acts as a
+fixed map from observation window to chunk (one draw of the sampler's noise, not fresh noise at
+every step; change ``seed`` for another draw). Nothing about sampling is held as state.
 
 Inference goes through :class:`~tar_rl.policies.chunking.ChunkedActor` (ACT's temporal ensemble
 or open-loop chunks); the models provide ``predict_chunk``.
@@ -290,7 +293,9 @@ def ddim_sample(
     At each step ``t`` (next step ``t'``, ``alpha_bar_{-1} = 1`` after the last):
     ``x0 = (x - sqrt(1 - ab_t) eps) / sqrt(ab_t)`` (clipped to ``[-clip, clip]``),
     ``sigma = eta * sqrt((1 - ab_t') / (1 - ab_t) * (1 - ab_t / ab_t'))``,
-    ``x <- sqrt(ab_t') x0 + sqrt(1 - ab_t' - sigma^2) eps + sigma z``, ``z ~ N(0, I)`` from ``generator``.
+    ``x <- sqrt(ab_t') x0 + sqrt(1 - ab_t' - sigma^2) eps + sigma z``, ``z ~ N(0, I)`` from
+    ``generator``, one draw of ``x``'s trailing shape shared by the rows (so each row depends on its
+    own inputs only).
     ``eta = 0`` is DDIM (Song et al. 2021); ``eta = 1`` is DDPM's ancestral step (with every step
     visited, ``sigma^2`` is DDPM's posterior variance ``(1 - ab_{t-1}) / (1 - ab_t) beta_t``).
 
@@ -315,7 +320,8 @@ def ddim_sample(
         direction = (1 - a_next - sigma**2).clamp_min(0).sqrt()
         x = a_next.sqrt().to(x.dtype) * x0 + direction.to(x.dtype) * eps
         if eta > 0 and i + 1 < len(timesteps):
-            x = x + sigma.to(x.dtype) * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+            z = torch.randn((1, *x.shape[1:]), generator=generator, device=x.device, dtype=x.dtype)
+            x = x + sigma.to(x.dtype) * z
     return x
 
 
@@ -323,28 +329,23 @@ def ddim_sample(
 
 
 class SeededSampling(nn.Module):
-    """Mixin for models that sample at inference: a generator seeded with ``seed``, created on first use
-    (on the input's device) and dropped on pickling or deep copying, so a copy starts from the seed."""
+    """Base of the models that sample at inference: a fresh generator seeded with ``seed`` per call.
+
+    No generator is kept on the module (a ``torch.Generator`` does not pickle, and a kept one would
+    make the actions depend on the calls before): :meth:`sampling_generator` makes a new one each
+    time, and :meth:`initial_noise` draws one ``[1, H, A]`` sample shared by the ``N`` rows.
+    """
 
     def __init__(self, seed: int):
         super().__init__()
         self.seed = int(seed)
-        self._generator: torch.Generator | None = None
 
-    def generator(self, device: torch.device) -> torch.Generator:
-        if self._generator is None or self._generator.device != torch.device(device):
-            self._generator = torch.Generator(device=device).manual_seed(self.seed)
-        return self._generator
+    def sampling_generator(self, device: torch.device) -> torch.Generator:
+        return torch.Generator(device=device).manual_seed(self.seed)
 
-    def reset_sampling(self) -> None:
-        """Start the sampling noise again from the seed."""
-        self._generator = None
-
-    def __getstate__(self):
-        state = super().__getstate__() if hasattr(super(), "__getstate__") else dict(self.__dict__)
-        state = dict(state)
-        state["_generator"] = None
-        return state
+    def initial_noise(self, n: int, shape: tuple[int, ...], generator: torch.Generator, device) -> torch.Tensor:
+        """``[n, *shape]`` standard normal noise, the same for every row."""
+        return torch.randn((1, *shape), generator=generator, device=device).expand(n, *shape)
 
 
 def _chunk_shapes(chunk: torch.Tensor, horizon: int, action_dim: int) -> None:
@@ -454,8 +455,8 @@ class OctoDiffusion(SeededSampling):
     def predict_chunk(self, history, history_valid, task_id) -> torch.Tensor:
         features = self.backbone(history, history_valid, task_id)
         n = features.shape[0]
-        gen = self.generator(features.device)
-        x = torch.randn(n, self.horizon, self.action_dim, generator=gen, device=features.device)
+        gen = self.sampling_generator(features.device)
+        x = self.initial_noise(n, (self.horizon, self.action_dim), gen, features.device)
         steps = sampling_timesteps(self.train_steps, self.sample_steps)
         eta = 0.0 if self.sampler == "ddim" else 1.0
         x = ddim_sample(lambda x, t: self.eps(x, t, features), x, self.alpha_bar, steps, eta=eta, generator=gen)
@@ -465,14 +466,25 @@ class OctoDiffusion(SeededSampling):
 # -- The loss and the builders -------------------------------------------------------------------
 
 
+def hold_last_valid(chunk: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """``chunk [..., H, A]`` with every entry past the last valid one (``valid [..., H]``, a prefix of
+    True) replaced by the last valid action; a chunk with no valid entry keeps its first one throughout."""
+    last = (valid.long().sum(-1, keepdim=True) - 1).clamp_min(0)  # [..., 1]
+    held = chunk.gather(-2, last[..., None].expand(*last.shape, chunk.shape[-1]))  # [..., 1, A]
+    return torch.where(valid[..., None].bool(), chunk, held)
+
+
 class ChunkLoss(LossModule):
     """Per-step loss of a chunked head on ``[B, L]`` segments: ``[B, L, H, A]``, never reduced.
 
     Calls ``model.step_loss(observation_history, observation_history_valid, task_id, action_chunk)``
     (the squared error of a regression head, the noise or velocity regression error of a generative
     one) and writes it as ``loss_name``. Padded chunk entries (``action_chunk_valid`` False) and
-    padded steps are left in: ``TARLoss`` averages over the valid chunk entries
-    (``set_keys(event_valid="action_chunk_valid")``) and weights the valid steps.
+    padded steps are left in the output: ``TARLoss`` averages over the valid chunk entries
+    (``set_keys(event_valid="action_chunk_valid")``) and weights the valid steps. Before the call,
+    padded chunk entries are set to the chunk's last valid action (the dataset's own convention past
+    an episode's end), so that whatever they hold cannot reach the valid entries' losses through
+    heads that read the whole noisy chunk (the diffusion denoiser, the flow action expert).
 
     Args:
         model: a head with ``step_loss``.
@@ -490,12 +502,15 @@ class ChunkLoss(LossModule):
             action: the regression target, by default ``action_chunk`` ``[B, L, H, A]`` (the next
                 ``H`` expert actions). Named ``action`` so that ``TARLoss``'s ``perturb_*`` controls
                 find it and corrupt the chunk the head learns from.
+            action_valid: ``[B, L, H]`` bool, True on chunk entries that are real steps (a prefix);
+                optional.
         """
 
         observation_history: str = "observation_history"
         observation_history_valid: str = "observation_history_valid"
         task_id: str = "task_id"
         action: str = "action_chunk"
+        action_valid: str = "action_chunk_valid"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -514,7 +529,7 @@ class ChunkLoss(LossModule):
     @property
     def in_keys(self) -> list:
         k = self.tensor_keys
-        return [k.observation_history, k.observation_history_valid, k.task_id, k.action]
+        return [k.observation_history, k.observation_history_valid, k.task_id, k.action, k.action_valid]
 
     @property
     def out_keys(self) -> list:
@@ -522,11 +537,15 @@ class ChunkLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         k = self.tensor_keys
+        chunk = tensordict.get(k.action)
+        valid = tensordict.get(k.action_valid, None)
+        if valid is not None:
+            chunk = hold_last_valid(chunk, valid)
         loss = self.model.step_loss(
             tensordict.get(k.observation_history),
             tensordict.get(k.observation_history_valid),
             tensordict.get(k.task_id),
-            tensordict.get(k.action),
+            chunk,
         )
         return TensorDict({self.loss_name: loss}, batch_size=[])
 
