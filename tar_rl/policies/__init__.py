@@ -30,9 +30,13 @@ from tar_rl.collectors.tasks import TASKS
 __all__ = [
     "POLICIES",
     "DataInfo",
+    "FlowConfig",
     "MLPConfig",
     "MLPPolicy",
     "ObsNorm",
+    "OctoConfig",
+    "OctoDiffusionConfig",
+    "OctoLinearConfig",
     "Policy",
     "PolicySpec",
     "build_policy",
@@ -153,4 +157,6 @@ def build_policy(cfg, info: DataInfo) -> Policy:
 
 
 # The heads register themselves on import; importing the package registers them all.
+from .flow import FlowConfig  # noqa: E402
 from .mlp import MLPConfig, MLPPolicy, ObsNorm  # noqa: E402
+from .octo import OctoConfig, OctoDiffusionConfig, OctoLinearConfig  # noqa: E402
