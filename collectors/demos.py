@@ -66,6 +66,8 @@ class TaskDemos:
         rejected_index: the ``j`` of the rejected episodes.
         env_steps: environment steps taken, rejected episodes included.
         seconds: wall time of the collection in the worker.
+        pixels: ``[N, 3, S, S]`` uint8 images of ``observation`` (``collect_task(image_size=S)``,
+            see :mod:`tar_rl.collectors.render`), or ``None``.
     """
 
     task: str
@@ -86,6 +88,7 @@ class TaskDemos:
     rejected_index: list[int] = field(default_factory=list)
     env_steps: int = 0
     seconds: float = 0.0
+    pixels: np.ndarray | None = None
 
     @property
     def kept(self) -> int:
@@ -110,11 +113,17 @@ def _check_seed(seed) -> int:
     return int(seed)
 
 
-def _rollout(env, policy, buf: dict[str, np.ndarray]) -> tuple[int, bool]:
-    """One expert episode into the preallocated buffers; returns (length, succeeded)."""
+def _rollout(env, policy, buf: dict[str, np.ndarray], render=None) -> tuple[int, bool]:
+    """One expert episode into the preallocated buffers; returns (length, succeeded).
+
+    With ``render`` (a :class:`~tar_rl.collectors.render.PixelRenderer`), ``buf["pix"][t]`` gets
+    the image of observation ``t``.
+    """
     obs_buf, raw_buf, act_buf, rew_buf = buf["obs"], buf["raw"], buf["act"], buf["rew"]
     obs, _ = env.reset()
     obs_buf[0] = obs
+    if render is not None:
+        return _rollout_rendered(env, policy, buf, render, obs)
     get_action = policy.get_action
     step = env.step
     for t in range(HORIZON):
@@ -132,7 +141,29 @@ def _rollout(env, policy, buf: dict[str, np.ndarray]) -> tuple[int, bool]:
     return HORIZON, False  # unreachable: MetaWorld truncates at step 500
 
 
-def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | None = None) -> TaskDemos:
+def _rollout_rendered(env, policy, buf: dict[str, np.ndarray], render, obs) -> tuple[int, bool]:
+    """``_rollout``'s loop with an image of every observation (kept apart so the plain loop stays bare)."""
+    pix_buf = buf["pix"]
+    pix_buf[0] = render(env)
+    for t in range(HORIZON):
+        raw = policy.get_action(obs)
+        buf["raw"][t] = raw
+        act = np.clip(raw, -1.0, 1.0)
+        buf["act"][t] = act
+        obs, reward, _terminated, truncated, info = env.step(act)
+        buf["obs"][t + 1] = obs
+        buf["rew"][t] = reward
+        if info["success"]:
+            return t + 1, True
+        if truncated:
+            return t + 1, False
+        pix_buf[t + 1] = render(env)  # the image of the next step's observation
+    return HORIZON, False
+
+
+def collect_task(
+    task: str, n_demos: int, seed: int = 0, max_attempts: int | None = None, image_size: int = 0
+) -> TaskDemos:
     """Roll the scripted expert out on ``task`` until ``n_demos`` episodes succeed.
 
     Episode ``j`` (``j = 0, 1, ...``) uses variation ``tasks.variation(task, seed, j)``; one
@@ -144,6 +175,8 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
         n_demos: successful episodes to keep.
         seed: base seed of the variations.
         max_attempts: episodes to try at most; default ``3 * n_demos + 5``.
+        image_size: ``S > 0`` also records ``[3, S, S]`` images of every observation (needs
+            off-screen rendering: :mod:`tar_rl.collectors.render`); 0: none.
 
     Returns:
         A :class:`TaskDemos` with ``n_demos`` episodes.
@@ -175,6 +208,13 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
         "act": np.empty((HORIZON, ACTION_DIM), np.float32),
         "rew": np.empty((HORIZON,), np.float32),
     }
+    render = None
+    if image_size:
+        from tar_rl.collectors.render import PixelRenderer
+
+        render = PixelRenderer(image_size)
+        buf["pix"] = np.empty((HORIZON, 3, image_size, image_size), np.uint8)
+    pixels: list[np.ndarray] = []
     episodes: list[tuple[np.ndarray, ...]] = []
     kept_index: list[int] = []
     rejected_index: list[int] = []
@@ -182,8 +222,10 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
     env_steps = 0
     while len(kept_index) < n_demos and j < max_attempts:
         env.set_task(_tasks.variation(task, seed, j))
-        length, ok = _rollout(env, policy, buf)
+        length, ok = _rollout(env, policy, buf, render)
         env_steps += length
+        if ok and render is not None:
+            pixels.append(buf["pix"][:length].copy())
         if ok:
             episodes.append(
                 (
@@ -198,6 +240,8 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
             rejected_index.append(j)
         j += 1
     env.close()
+    if render is not None:
+        render.close()
     if len(kept_index) < n_demos:
         raise RuntimeError(
             f"task {task!r}: the scripted expert succeeded in only {len(kept_index)} of {j} episodes "
@@ -229,6 +273,7 @@ def collect_task(task: str, n_demos: int, seed: int = 0, max_attempts: int | Non
         rejected_index=rejected_index,
         env_steps=env_steps,
         seconds=time.perf_counter() - start,
+        pixels=np.concatenate(pixels) if render is not None else None,
     )
 
 
@@ -246,7 +291,7 @@ def _worker_init() -> None:
     warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
 
 
-def _job(args: tuple[str, int, int, int | None]) -> TaskDemos:
+def _job(args: tuple[str, int, int, int | None, int]) -> TaskDemos:
     return collect_task(*args)
 
 
@@ -257,6 +302,7 @@ def collect(
     workers: int | None = None,
     max_attempts: int | None = None,
     *,
+    image_size: int = 0,
     progress: bool = True,
     verbose: bool = True,
 ) -> dict[str, TaskDemos]:
@@ -271,6 +317,8 @@ def collect(
         seed: base seed of the variations (the same for every task).
         workers: processes; default ``os.cpu_count()``, never more than the number of tasks.
         max_attempts: episodes to try per task at most; default ``3 * n_demos + 5``.
+        image_size: ``S > 0`` records ``[3, S, S]`` images of every observation; rendering runs in
+            worker processes (at least one) started with ``MUJOCO_GL=egl`` unless set already.
         progress: show a tqdm bar advancing per finished task.
         verbose: print a summary (tasks, demos kept/rejected, steps, time).
 
@@ -293,17 +341,25 @@ def collect(
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 0:
         raise ValueError(f"workers must be a non-negative integer or None, got {workers!r}.")
     workers = min(int(workers), len(names))
+    if isinstance(image_size, bool) or not isinstance(image_size, (int, np.integer)) or image_size < 0:
+        raise ValueError(f"image_size must be a non-negative integer (0: no images), got {image_size!r}.")
+    if image_size:
+        from tar_rl.collectors.render import headless_gl
+
+        headless_gl()
+        workers = max(workers, 1)
 
     from tqdm.auto import tqdm
 
     start = time.perf_counter()
     # Longest first (harder groups have longer episodes): less idle time at the end of the pool.
     rank = {"very_hard": 0, "hard": 1, "medium": 2, "easy": 3}
-    jobs = [(name, n_demos, seed, max_attempts) for name in sorted(names, key=lambda n: rank[_tasks.group_of(n)])]
+    ordered = sorted(names, key=lambda n: rank[_tasks.group_of(n)])
+    jobs = [(name, n_demos, seed, max_attempts, int(image_size)) for name in ordered]
     results: dict[str, TaskDemos] = {}
     bar = tqdm(total=len(names), desc="demonstrations", unit="task", disable=not progress, file=sys.stderr)
     try:
-        if workers <= 1:
+        if workers == 0 or (workers == 1 and not image_size):
             for job in jobs:
                 out = _job(job)
                 results[out.task] = out

@@ -102,6 +102,8 @@ class DataConfig:
         batch_segments: segments per batch ``B`` (a batch holds ``B * L`` steps).
         chunk_horizon: ``H`` of the stored ``action_chunk`` (for chunked heads).
         history: ``K`` of the stored ``observation_history`` (for heads reading past observations).
+        image_size: ``S > 0`` also renders and stores ``[3, S, S]`` camera images (for
+            ``policy.observation=image``; needs off-screen rendering, ``MUJOCO_GL=egl``); 0: none.
         workers: collection processes (default: every core).
     """
 
@@ -113,6 +115,7 @@ class DataConfig:
     batch_segments: int = 64
     chunk_horizon: int = 8
     history: int = 2
+    image_size: int = 0
     workers: int | None = None
 
 

@@ -158,6 +158,7 @@ def validate(config: dict) -> dict:
         ("data.batch_segments", data["batch_segments"], 1),
         ("data.chunk_horizon", data["chunk_horizon"], 1),
         ("data.history", data["history"], 1),
+        ("data.image_size", data["image_size"], 0),
         ("eval.rollouts", ev["rollouts"], 1),
         ("eval.every", ev["every"], 0),
         ("optim.steps", opt["steps"], 1),
@@ -202,7 +203,9 @@ def validate(config: dict) -> dict:
         raise ConfigError(f"data.seed={data['seed']} and eval.seed={ev['seed']}: {err}") from None
     # The objective and the head are built once on placeholder data so that their own checks run now.
     try:
-        placeholder = DataInfo(chunk_horizon=data["chunk_horizon"], history=data["history"])
+        placeholder = DataInfo(
+            chunk_horizon=data["chunk_horizon"], history=data["history"], image_size=data["image_size"]
+        )
         make_objective(config, make_policy(config, placeholder))
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
@@ -239,6 +242,7 @@ def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> D
         seed=data["seed"],
         chunk_horizon=data["chunk_horizon"],
         history=data["history"],
+        image_size=data["image_size"],
         workers=data["workers"],
         progress=progress,
     )

@@ -34,6 +34,8 @@ Keys per step (``N`` steps, chunk horizon ``H``):
   oldest first (the last entry is ``observation``), before the episode start the first
   observation repeated; ``observation_history_valid`` [K] bool, True on real steps (K: ``history``,
   for heads that read a window of past observations).
+* ``pixels`` [3, S, S] uint8, only in datasets built with ``image_size=S > 0``: the camera image of
+  ``observation`` (:mod:`tar_rl.collectors.render`).
 """
 
 from __future__ import annotations
@@ -91,9 +93,17 @@ def _version(dist: str) -> str | None:
 
 
 def _settings(
-    tasks: tuple[str, ...], n_demos: int, seed: int, chunk_horizon: int, history: int, max_attempts: int
+    tasks: tuple[str, ...],
+    n_demos: int,
+    seed: int,
+    chunk_horizon: int,
+    history: int,
+    max_attempts: int,
+    image_size: int = 0,
 ) -> dict:
+    extra = {"image_size": image_size} if image_size else {}  # absent: the cache keys of state-only datasets
     return {
+        **extra,
         "tasks": list(tasks),
         "n_demos": n_demos,
         "seed": seed,
@@ -159,6 +169,7 @@ def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int, history: 
     task_id = np.concatenate([np.full(r.steps, _tasks.task_index(r.task), dtype=np.int64) for r in results.values()])
     chunk, chunk_valid = _chunks(cat["action"], lengths, horizon)
     past, past_valid = _history(cat["observation"], lengths, history)
+    pixels = all(r.pixels is not None for r in results.values())
     terminated = cat["terminated"][:, None]
     truncated = cat["truncated"][:, None]
     t = torch.from_numpy
@@ -174,6 +185,7 @@ def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int, history: 
             "action_chunk_valid": t(chunk_valid),
             "observation_history": t(np.ascontiguousarray(past)),
             "observation_history_valid": t(past_valid),
+            **({"pixels": t(np.concatenate([r.pixels for r in results.values()]))} if pixels else {}),
             "next": {
                 "observation": t(cat["next_observation"]),
                 "reward": t(cat["reward"][:, None]),
@@ -235,6 +247,7 @@ def _metadata(settings: dict, key: str, results: dict[str, _demos.TaskDemos], da
         "total_rejected": sum(p["rejected"] for p in per_task.values()),
         "chunk_horizon": settings["chunk_horizon"],
         "history": settings["history"],
+        "image_size": settings.get("image_size", 0),
         "keys": _leaf_specs(data),
         "horizon": _demos.HORIZON,
         "action_target": ACTION_TARGET,
@@ -294,6 +307,7 @@ def build_dataset(
     max_attempts: int | None = None,
     *,
     history: int = 2,
+    image_size: int = 0,
     progress: bool = True,
     verbose: bool = True,
 ) -> DemoDataset:
@@ -306,6 +320,7 @@ def build_dataset(
         seed: base seed of the variations (``tasks.variation(task, seed, j)``).
         chunk_horizon: ``H`` of ``action_chunk`` (``[H, 4]`` per step).
         history: ``K`` of ``observation_history`` (``[K, 39]`` per step).
+        image_size: ``S > 0`` also stores ``pixels`` (``[3, S, S]`` uint8 per step); 0: state only.
         workers: collection processes, default ``os.cpu_count()``; 0 or 1: in this process.
         max_attempts: episodes per task at most; default ``3 * n_demos + 5``.
         progress: show a progress bar while collecting.
@@ -322,6 +337,9 @@ def build_dataset(
     n_demos = _positive_int("n_demos", n_demos)
     chunk_horizon = _positive_int("chunk_horizon", chunk_horizon)
     history = _positive_int("history", history)
+    if isinstance(image_size, bool) or not isinstance(image_size, (int, np.integer)) or image_size < 0:
+        raise ValueError(f"image_size must be a non-negative integer (0: no images), got {image_size!r}.")
+    image_size = int(image_size)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
     seed = int(seed)
@@ -331,7 +349,7 @@ def build_dataset(
         raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
 
     root = Path(root)
-    settings = _settings(names, n_demos, seed, chunk_horizon, history, max_attempts)
+    settings = _settings(names, n_demos, seed, chunk_horizon, history, max_attempts, image_size)
     key = cache_key(settings)
     name = NAME_PREFIX + key
     final = root / name
@@ -352,7 +370,14 @@ def build_dataset(
 
     start = time.perf_counter()
     results = _demos.collect(
-        names, n_demos, seed=seed, workers=workers, max_attempts=max_attempts, progress=progress, verbose=verbose
+        names,
+        n_demos,
+        seed=seed,
+        workers=workers,
+        max_attempts=max_attempts,
+        image_size=image_size,
+        progress=progress,
+        verbose=verbose,
     )
     secs = time.perf_counter() - start
     data = _to_tensordict(results, chunk_horizon, history)

@@ -51,3 +51,34 @@ def test_bench_objective_quick_writes_csv(tmp_path):
     assert unavailable["median"].isna().all()
     for name in ("masked_mean", "tar_paper", "tar_exact"):
         assert name in set(measured[measured.section == "weighting"].variant)
+
+
+@pytest.mark.slow
+def test_bench_heads_quick_covers_every_registered_head(tmp_path):
+    from tar_rl.policies import POLICIES
+
+    spec = importlib.util.spec_from_file_location("bench_heads", BENCH.parent / "bench_heads.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "h.csv"
+    bench.main(["--quick", "--out", str(out), "--batch", "4", "--slice-len", "4", "--envs", "2", "--calls", "3"])
+
+    df = pd.read_csv(out)
+    assert list(df.columns) == bench.COLUMNS
+    assert set(df.section) == {"train_step", "throughput", "tar_overhead", "inference"}
+    for section, variants in (("train_step", {"uniform", "tar"}), ("throughput", {"uniform", "tar"})):
+        rows = df[df.section == section]
+        assert set(rows["head"]) == set(POLICIES)
+        assert all(set(rows[rows["head"] == h].variant) == variants for h in POLICIES)
+    assert set(df[df.section == "inference"]["head"]) == set(POLICIES)
+    assert set(df[df.section == "tar_overhead"]["head"]) == set(POLICIES)
+    assert all(math.isfinite(m) and m > 0 for m in df["median"])
+    assert all(math.isfinite(r) and r > 0 for r in df["ratio_to_baseline"])
+    # mlp is the baseline: its own ratios are 1
+    mlp = df[(df["head"] == "mlp") & (df.baseline == "mlp")]
+    assert len(mlp) == 5 and (mlp.ratio_to_baseline == 1).all()
+    # throughput is the batch over the step time; with an odd number of rounds (3) the median of
+    # B / t is exactly B over the median of t
+    step = df[df.section == "train_step"].set_index(["head", "variant"])["median"]
+    rate = df[df.section == "throughput"].set_index(["head", "variant"])["median"]
+    assert ((rate * step / 1e3 - 4).abs() < 1e-9).all()

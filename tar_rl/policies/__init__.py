@@ -33,9 +33,13 @@ __all__ = [
     "ACTConfig",
     "ACTModel",
     "DataInfo",
+    "FlowConfig",
     "MLPConfig",
     "MLPPolicy",
     "ObsNorm",
+    "OctoConfig",
+    "OctoDiffusionConfig",
+    "OctoLinearConfig",
     "Policy",
     "PolicySpec",
     "build_policy",
@@ -55,6 +59,7 @@ class DataInfo:
         obs_mean, obs_std: per-dimension observation statistics of the training data.
         chunk_horizon: the dataset's ``action_chunk`` horizon ``H``.
         history: the dataset's ``observation_history`` window ``K``.
+        image_size: the side ``S`` of the dataset's ``pixels`` (0: a state-only dataset).
     """
 
     obs_dim: int = 39
@@ -64,6 +69,7 @@ class DataInfo:
     obs_std: tuple[float, ...] | None = None
     chunk_horizon: int = 1
     history: int = 1
+    image_size: int = 0
 
     @classmethod
     def from_metadata(cls, metadata: dict) -> DataInfo:
@@ -76,6 +82,7 @@ class DataInfo:
             obs_std=tuple(stats["std"]),
             chunk_horizon=int(metadata["chunk_horizon"]),
             history=int(metadata.get("history", 1)),
+            image_size=int(metadata.get("image_size", 0)),
         )
 
     def to_dict(self) -> dict:
@@ -154,4 +161,6 @@ def build_policy(cfg, info: DataInfo) -> Policy:
 
 # The heads register themselves on import; importing the package registers them all.
 from .act import ACTChunkLoss, ACTConfig, ACTModel  # noqa: E402
+from .flow import FlowConfig  # noqa: E402
 from .mlp import MLPConfig, MLPPolicy, ObsNorm  # noqa: E402
+from .octo import OctoConfig, OctoDiffusionConfig, OctoLinearConfig  # noqa: E402

@@ -12,6 +12,7 @@ from torchrl.objectives import BCLoss
 
 from . import DataInfo, Policy, PolicySpec, register_policy
 from .conditioning import TaskEncoder
+from .vision import OBSERVATIONS, PROPRIO_DIMS, ConvEncoder
 
 __all__ = ["MLPConfig", "MLPPolicy", "ObsNorm"]
 
@@ -47,6 +48,10 @@ class MLPConfig:
             :mod:`tar_rl.policies.conditioning`), ``onehot`` or ``none``.
         task_dim: width of the learned task embedding.
         normalize_obs: standardise observations with the training data's statistics.
+        observation: ``state`` (the 39-d state vector) or ``image`` (the camera image through a
+            conv encoder, plus the proprioceptive state: :mod:`tar_rl.policies.vision`; needs a
+            dataset with images, ``data.image_size > 0``).
+        image_dim: width of the image features.
     """
 
     name: str = "mlp"
@@ -54,6 +59,8 @@ class MLPConfig:
     task_conditioning: str = "embedding"
     task_dim: int = 32
     normalize_obs: bool = True
+    observation: str = "state"
+    image_dim: int = 64
 
 
 _TASK_CONDITIONING = ("embedding", "instruction", "onehot", "none")
@@ -63,7 +70,7 @@ class MLPPolicy(nn.Module):
     """Plain tensor module: ``(observation [..., D], task_id [...]) -> action [..., A]``.
 
     Works on any leading shape (``[N]`` at inference, ``[B, L]`` in training), step by step:
-    nothing mixes the time axis.
+    nothing mixes the time axis. With ``observation="image"`` it also takes ``pixels [..., 3, S, S]``.
     """
 
     def __init__(self, cfg: MLPConfig, info: DataInfo):
@@ -76,8 +83,15 @@ class MLPPolicy(nn.Module):
             raise ValueError(f"policy.hidden must be a non-empty list of positive widths, got {list(cfg.hidden)}")
         if cfg.task_conditioning in ("embedding", "instruction") and cfg.task_dim < 1:
             raise ValueError(f"policy.task_dim must be >= 1, got {cfg.task_dim}")
+        if cfg.observation not in OBSERVATIONS:
+            raise ValueError(f"policy.observation must be one of {list(OBSERVATIONS)}, got {cfg.observation!r}")
         self.conditioning = cfg.task_conditioning
         self.n_tasks = info.n_tasks
+        self.image = None
+        if cfg.observation == "image":
+            self.image = ConvEncoder(info.image_size, cfg.image_dim) if info.image_size else None
+            if self.image is None:
+                raise ValueError("policy.observation=image needs a dataset with images: set data.image_size (e.g. 64)")
         if cfg.normalize_obs:
             self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std)
         else:
@@ -90,15 +104,18 @@ class MLPPolicy(nn.Module):
             "instruction": lambda: TaskEncoder("instruction", info.n_tasks, cfg.task_dim),
         }.get(self.conditioning, lambda: None)()
         layers: list[nn.Module] = []
-        width = info.obs_dim + task_width
+        state_width = PROPRIO_DIMS + cfg.image_dim if self.image is not None else info.obs_dim
+        width = state_width + task_width
         for h in cfg.hidden:
             layers += [nn.Linear(width, int(h)), nn.ReLU()]
             width = int(h)
         layers.append(nn.Linear(width, info.action_dim))
         self.net = nn.Sequential(*layers)
 
-    def forward(self, observation: torch.Tensor, task_id: torch.Tensor) -> torch.Tensor:
+    def forward(self, observation: torch.Tensor, task_id: torch.Tensor, pixels: torch.Tensor | None = None):
         x = self.norm(observation)
+        if self.image is not None:
+            x = torch.cat([x[..., :PROPRIO_DIMS], self.image(pixels)], dim=-1)
         if self.task_embedding is not None:
             x = torch.cat([x, self.task_embedding(task_id)], dim=-1)
         elif self.conditioning == "onehot":
@@ -107,12 +124,13 @@ class MLPPolicy(nn.Module):
 
 
 def _build_mlp(cfg: MLPConfig, info: DataInfo) -> Policy:
-    actor = TensorDictModule(MLPPolicy(cfg, info), in_keys=["observation", "task_id"], out_keys=["action"])
+    in_keys = ["observation", "task_id"] + (["pixels"] if cfg.observation == "image" else [])
+    actor = TensorDictModule(MLPPolicy(cfg, info), in_keys=in_keys, out_keys=["action"])
     # BCLoss with reduction="none" keeps [B, L, A]; TARLoss averages the action dim per step.
     with warnings.catch_warnings():  # torchrl 0.14.1's BCLoss warns about its own annotations
         warnings.filterwarnings("ignore", "The name target_actor_network_params", UserWarning)
         loss = BCLoss(actor, loss_function="mse", reduction="none")
-    return Policy(actor=actor, loss=loss, keys=("observation", "task_id", "action"))
+    return Policy(actor=actor, loss=loss, keys=(*in_keys, "action"))
 
 
 register_policy(PolicySpec("mlp", MLPConfig, _build_mlp, "regression MLP on the current observation and task, MSE"))

@@ -1,0 +1,419 @@
+"""Speed of every registered policy head: training throughput under uniform and TAR, inference latency.
+
+Run from the repository root::
+
+    .venv/bin/python benchmarks/bench_heads.py [--quick] [--device cpu|cuda] [--heads a,b] [--out PATH]
+
+Every head in ``tar_rl.policies.POLICIES`` (a head registered later appears without change here)
+is built from its config defaults with ``DataInfo(chunk_horizon=8, history=2)`` (the data
+defaults) and measured in two sections, each timed round-robin (every round times every variant
+once, in a fresh random order, so that machine noise hits all variants alike); medians and IQRs
+over rounds are reported.
+
+* ``train_step``: one training step (``TARLoss`` forward on a fixed synthetic ``[B, L]`` batch
+  (default ``[64, 16]``) already on the device, backward, ``AdamW.step()``, ``zero_grad()``) for
+  every head under ``uniform`` and ``tar`` (TAR at full strength from the first step); each
+  (head, weighting) trains its own copy built from the same seed. On CUDA the step runs under
+  bfloat16 autocast (as the recipe does; ``--no-amp`` to disable) and ends with a synchronise.
+  Reported per head: ms per step and segments/s (``B / time``), their ratio to ``mlp``, and the TAR
+  overhead ``tar / uniform`` (ratio of medians, and the median of the per-round ratio, "paired").
+* ``inference``: one batched environment step of ``N`` envs (default 16) through the head's
+  actor (for chunked heads the ``ChunkedActor`` with its default execution), as the evaluator
+  calls it: a fixed sequence of observations, the first call starting every rollout
+  (``is_init``), the later ones continuing them; ms per call and the ratio to ``mlp``.
+
+The synthetic batch carries every dataset entry (``observation``, ``task_id``, ``action``,
+``action_chunk`` + ``action_chunk_valid``, ``observation_history`` + ``observation_history_valid``,
+``("collector", "mask")``); a quarter of the segments end early (padding, chunks running past the
+end, history before the start), as in ``benchmarks/bench_objective.py``.
+
+Output: a table on stdout and one tidy CSV (default ``benchmarks/results/heads.csv``), one row per
+(section, head, variant) with columns ``section, head, variant, median, iqr, unit,
+ratio_to_baseline, baseline, n, batch, device, torch, threads, commit``. Sections:
+``train_step`` (ms/step, baseline ``mlp``), ``throughput`` (segments/s, baseline ``mlp``),
+``tar_overhead`` (``median``/``iqr``: the paired ratio tar / uniform; ``ratio_to_baseline``: the
+ratio of medians; baseline ``uniform``), ``inference`` (ms per batched env step, baseline ``mlp``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import math
+import os
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from tensordict import TensorDict
+
+from tar_rl.io import write_csv_atomic
+from tar_rl.objectives import TARLoss
+from tar_rl.policies import POLICIES, DataInfo, build_policy
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
+from common import git_commit, median_iqr
+
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_OUT = REPO / "benchmarks" / "results" / "heads.csv"
+
+OBS_DIM, ACTION_DIM, N_TASKS = 39, 4, 50
+CHUNK_HORIZON, HISTORY = 8, 2
+PAD_SEGMENT_FRACTION = 0.25
+OBJECTIVES = ("uniform", "tar")
+BASELINE_HEAD = "mlp"
+TAR_TARGET = 1.02
+COLUMNS = [
+    "section",
+    "head",
+    "variant",
+    "median",
+    "iqr",
+    "unit",
+    "ratio_to_baseline",
+    "baseline",
+    "n",
+    "batch",
+    "device",
+    "torch",
+    "threads",
+    "commit",
+]
+
+
+# ---------------------------------------------------------------------------------------------
+# Data and variants
+# ---------------------------------------------------------------------------------------------
+
+
+def make_batch(batch: int, slice_len: int, seed: int = 0) -> TensorDict:
+    """A ``[B, L]`` batch with every dataset entry, as the recipe's segment sampler returns it.
+
+    Episodes are random walks; a quarter of the segments end early (padding repeats the last
+    real step, ``("collector", "mask")`` False there); chunks and histories are cut from the
+    episode with their validity flags (past the end: the last action repeated; before the start:
+    the first observation repeated).
+    """
+    g = torch.Generator().manual_seed(seed)
+    total = slice_len + CHUNK_HORIZON + HISTORY
+    obs = torch.randn(batch, total, OBS_DIM, generator=g).cumsum(1) * 0.1
+    act = (torch.rand(batch, total, ACTION_DIM, generator=g) * 2 - 1).clamp(-1, 1)
+    task = torch.randint(N_TASKS, (batch,), generator=g)
+    short = torch.rand(batch, generator=g) < PAD_SEGMENT_FRACTION
+    length = torch.where(short, torch.randint(2, slice_len, (batch,), generator=g), slice_len)
+    start = torch.where(torch.rand(batch, generator=g) < 0.25, 0, HISTORY - 1)  # some segments open an episode
+    steps = torch.arange(slice_len)
+    mask = steps[None] < length[:, None]
+    last = torch.minimum(steps[None], (length - 1)[:, None])  # [B, L] padding repeats the last real step
+    t = start[:, None] + last  # time index in the episode buffer
+    extra = torch.where(short, 0, torch.randint(0, CHUNK_HORIZON + 1, (batch,), generator=g))
+    end = start + length - 1 + extra  # the episode's last real step: short segments end with their episode
+
+    def take(x, idx):
+        return x[torch.arange(batch)[:, None, None], idx]
+
+    h_idx = t[..., None] - torch.arange(HISTORY - 1, -1, -1)  # oldest first
+    h_valid = h_idx >= 0
+    history = take(obs, h_idx.clamp_min(0))
+    c_idx = t[..., None] + torch.arange(CHUNK_HORIZON)
+    c_valid = c_idx <= end[:, None, None]
+    chunk = take(act, torch.minimum(c_idx, end[:, None, None]))
+    return TensorDict(
+        {
+            "observation": take(obs, t[..., None])[:, :, 0],
+            "task_id": task[:, None].expand(batch, slice_len).clone(),
+            "action": take(act, t[..., None])[:, :, 0],
+            "action_chunk": chunk,
+            "action_chunk_valid": c_valid,
+            "observation_history": history,
+            "observation_history_valid": h_valid,
+            ("collector", "mask"): mask,
+        },
+        [batch, slice_len],
+    )
+
+
+def data_info() -> DataInfo:
+    return DataInfo(obs_dim=OBS_DIM, action_dim=ACTION_DIM, chunk_horizon=CHUNK_HORIZON, history=HISTORY)
+
+
+def build(head: str, seed: int):
+    torch.manual_seed(seed)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "The name target_actor_network_params", UserWarning)
+        return build_policy(POLICIES[head].config(), data_info())
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def make_step(head: str, objective: str, batch: TensorDict, device: torch.device, amp: bool, seed: int):
+    """One training step of ``head`` under ``objective`` on its own copy and its own AdamW."""
+    policy = build(head, seed)
+    loss = TARLoss(policy.loss, objective, loss_key=policy.loss_key)
+    if policy.event_valid is not None:
+        loss.set_keys(event_valid=policy.event_valid)
+    loss = loss.to(device)
+    optimizer = torch.optim.AdamW(loss.parameters(), lr=1e-4)
+    use_amp = amp and device.type == "cuda"
+
+    def step() -> None:
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
+            out = loss(batch)
+        out["loss_tar"].backward()
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        _sync(device)
+
+    return step
+
+
+def make_inference(head: str, n_envs: int, calls: int, device: torch.device, seed: int):
+    """One batched env step per call of ``head``'s actor; rollouts restart every ``calls`` calls."""
+    actor = build(head, seed).actor.to(device).eval()
+    g = torch.Generator().manual_seed(seed + 1)
+    obs = (torch.randn(calls, n_envs, OBS_DIM, generator=g).cumsum(0) * 0.1).to(device)
+    task = torch.randint(N_TASKS, (n_envs,), generator=g).to(device)
+    inputs = [
+        TensorDict(
+            {"observation": obs[i], "task_id": task, "is_init": torch.full((n_envs, 1), i == 0, device=device)},
+            [n_envs],
+        )
+        for i in range(calls)
+    ]
+    state = {"i": 0}
+
+    def call() -> None:
+        td = inputs[state["i"] % calls].clone()
+        state["i"] += 1
+        with torch.no_grad():
+            actor(td)
+        _sync(device)
+
+    return call
+
+
+# ---------------------------------------------------------------------------------------------
+# Timing
+# ---------------------------------------------------------------------------------------------
+
+
+def interleaved(fns: dict, reps: int, seed: int) -> dict[object, np.ndarray]:
+    """Per variant, ``reps`` samples of seconds per call; variants shuffled within each round.
+
+    The garbage collector is off while timing and runs between rounds, outside the timed region.
+    """
+    rng = np.random.default_rng(seed)
+    names = list(fns)
+    times = {name: np.empty(reps) for name in names}
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for r in range(reps):
+            for i in rng.permutation(len(names)):
+                name = names[i]
+                start = time.perf_counter()
+                fns[name]()
+                times[name][r] = time.perf_counter() - start
+            gc.collect()
+    finally:
+        if was_enabled:
+            gc.enable()
+    return times
+
+
+def bench_train(heads, args, device) -> list[dict]:
+    batch = make_batch(args.batch, args.slice_len, args.seed).to(device)
+    steps: dict[tuple[str, str], Callable[[], None]] = {}
+    for head in heads:
+        for objective in OBJECTIVES:
+            steps[head, objective] = make_step(head, objective, batch, device, args.amp, args.seed)
+    for step in steps.values():
+        for _ in range(args.warmup):
+            step()
+    times = interleaved(steps, args.reps, args.seed)
+
+    base = BASELINE_HEAD if BASELINE_HEAD in heads else heads[0]
+    ms = {k: median_iqr(t * 1e3) for k, t in times.items()}
+    rate = {k: median_iqr(args.batch / t) for k, t in times.items()}
+    rows = []
+    for head in heads:
+        for objective in OBJECTIVES:
+            key = (head, objective)
+            common = dict(head=head, variant=objective, baseline=base, n=args.reps)
+            med, iqr = ms[key]
+            rows.append(
+                dict(
+                    section="train_step",
+                    median=med,
+                    iqr=iqr,
+                    unit="ms/step",
+                    ratio_to_baseline=med / ms[base, objective][0],
+                    **common,
+                )
+            )
+            med, iqr = rate[key]
+            rows.append(
+                dict(
+                    section="throughput",
+                    median=med,
+                    iqr=iqr,
+                    unit="segments/s",
+                    ratio_to_baseline=med / rate[base, objective][0],
+                    **common,
+                )
+            )
+        med, iqr = median_iqr(times[head, "tar"] / times[head, "uniform"])
+        rows.append(
+            dict(
+                section="tar_overhead",
+                head=head,
+                variant="tar",
+                median=med,
+                iqr=iqr,
+                unit="ratio",
+                ratio_to_baseline=ms[head, "tar"][0] / ms[head, "uniform"][0],
+                baseline="uniform",
+                n=args.reps,
+            )
+        )
+    return rows
+
+
+def bench_inference(heads, args, device) -> list[dict]:
+    calls = {head: make_inference(head, args.envs, args.calls, device, args.seed) for head in heads}
+    for call in calls.values():
+        for _ in range(min(args.calls, 5)):
+            call()
+    times = interleaved(calls, args.calls, args.seed + 1)
+    base = BASELINE_HEAD if BASELINE_HEAD in heads else heads[0]
+    ms = {k: median_iqr(t * 1e3) for k, t in times.items()}
+    rows = []
+    for head in heads:
+        cfg = POLICIES[head].config()
+        med, iqr = ms[head]
+        rows.append(
+            dict(
+                section="inference",
+                head=head,
+                variant=getattr(cfg, "execution", "step"),
+                median=med,
+                iqr=iqr,
+                unit="ms/env-step",
+                ratio_to_baseline=med / ms[base][0],
+                baseline=base,
+                n=args.calls,
+            )
+        )
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# Output
+# ---------------------------------------------------------------------------------------------
+
+
+def _fmt(x: float, digits: int = 2) -> str:
+    return "n/a" if not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def render(df: pd.DataFrame, header: list[str]) -> str:
+    lines = [*header, ""]
+    train = df[df.section == "train_step"].set_index(["head", "variant"])
+    rate = df[df.section == "throughput"].set_index(["head", "variant"])
+    over = df[df.section == "tar_overhead"].set_index("head")
+    infer = df[df.section == "inference"].set_index("head")
+    heads = list(dict.fromkeys(df["head"]))
+    lines.append(
+        f"{'head':<16}{'uniform ms':>11}{'tar ms':>9}{'/mlp':>7}{'seg/s unif':>12}{'seg/s tar':>11}"
+        f"{'tar/unif':>10}{'paired [IQR]':>18}{'infer ms':>10}{'/mlp':>7}"
+    )
+    for head in heads:
+        u, t = train.loc[(head, "uniform")], train.loc[(head, "tar")]
+        o, i = over.loc[head], infer.loc[head]
+        paired = f"{o['median']:.4f} [{o['iqr']:.4f}]"
+        lines.append(
+            f"{head:<16}{_fmt(u['median']):>11}{_fmt(t['median']):>9}{_fmt(u['ratio_to_baseline']):>7}"
+            f"{_fmt(rate.loc[(head, 'uniform'), 'median'], 0):>12}{_fmt(rate.loc[(head, 'tar'), 'median'], 0):>11}"
+            f"{_fmt(o['ratio_to_baseline'], 4):>10}{paired:>18}{_fmt(i['median']):>10}{_fmt(i['ratio_to_baseline']):>7}"
+        )
+    lines.append("")
+    for head in heads:
+        if head == BASELINE_HEAD:
+            continue
+        p = over.loc[head, "median"]
+        verdict = "meets" if p <= TAR_TARGET else "misses"
+        lines.append(f"TAR overhead {head}: paired {p:.4f} -> {verdict} the target <= {TAR_TARGET}")
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="few repetitions: a smoke test")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to train and infer (default cpu)")
+    p.add_argument("--heads", default="", help="comma-separated heads (default: every registered head)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"CSV path (default {DEFAULT_OUT})")
+    p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (default 1, for stable timings)")
+    p.add_argument("--batch", type=int, default=64, help="segments per training batch B (default 64)")
+    p.add_argument("--slice-len", type=int, default=16, help="steps per segment L (default 16)")
+    p.add_argument("--envs", type=int, default=16, help="envs N per inference call (default 16)")
+    p.add_argument("--reps", type=int, default=None, help="interleaved training rounds (default 30; quick 3)")
+    p.add_argument("--warmup", type=int, default=None, help="warm-up steps per variant (default 3; quick 1)")
+    p.add_argument("--calls", type=int, default=None, help="interleaved inference rounds (default 200; quick 10)")
+    p.add_argument("--amp", action=argparse.BooleanOptionalAction, default=True, help="bf16 autocast on CUDA")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    args.reps = args.reps if args.reps is not None else (3 if args.quick else 30)
+    args.warmup = args.warmup if args.warmup is not None else (1 if args.quick else 3)
+    args.calls = args.calls if args.calls is not None else (10 if args.quick else 200)
+    if min(args.threads, args.batch, args.slice_len, args.envs, args.reps, args.calls) < 1 or args.warmup < 0:
+        p.error("--threads, --batch, --slice-len, --envs, --reps and --calls must be >= 1, --warmup >= 0")
+    heads = [h.strip() for h in args.heads.split(",") if h.strip()] or list(POLICIES)
+    unknown = [h for h in heads if h not in POLICIES]
+    if unknown:
+        p.error(f"unknown head(s) {unknown}; registered: {sorted(POLICIES)}")
+    args.heads = heads
+    if args.device == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda: CUDA is not available here")
+    return args
+
+
+def main(argv: list[str] | None = None) -> pd.DataFrame:
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    commit = git_commit()
+    started = time.perf_counter()
+
+    rows = bench_train(args.heads, args, device) + bench_inference(args.heads, args, device)
+    df = pd.DataFrame(rows)
+    df["batch"] = f"[{args.batch}, {args.slice_len}]"
+    df["device"] = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    df["torch"] = torch.__version__
+    df["threads"] = torch.get_num_threads()
+    df["commit"] = commit
+    df = df[COLUMNS]
+    write_csv_atomic(df, args.out)
+
+    amp = " bf16 autocast" if args.amp and device.type == "cuda" else ""
+    header = [
+        f"bench_heads: torch {torch.__version__}, device {df['device'].iloc[0]}{amp}, threads "
+        f"{torch.get_num_threads()}, CPUs {os.cpu_count()}, commit {commit}{' (--quick)' if args.quick else ''}",
+        f"training step: batch [{args.batch}, {args.slice_len}], {args.reps} interleaved rounds after {args.warmup} "
+        f"warm-up steps; inference: N = {args.envs} envs, {args.calls} interleaved calls; medians over rounds",
+        "paired = median over rounds of the within-round ratio tar / uniform",
+    ]
+    print(render(df, header))
+    print(f"\nwrote {args.out} ({len(df)} rows) in {time.perf_counter() - started:.0f} s")
+    return df
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""Image observations for the heads: a small conv encoder and the proprioceptive part of the state.
+
+With ``observation="image"`` a head sees the camera image ``pixels`` (``[..., 3, S, S]`` uint8, see
+:mod:`tar_rl.collectors.render`) and the robot's own state only: the first :data:`PROPRIO_DIMS`
+entries of MetaWorld's observation (hand position x, y, z and the gripper opening). The object
+and goal positions of the state vector are left out: they must be seen in the image.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["OBSERVATIONS", "PROPRIO_DIMS", "ConvEncoder"]
+
+OBSERVATIONS = ("state", "image")
+PROPRIO_DIMS = 4
+
+
+class ConvEncoder(nn.Module):
+    """``pixels [..., 3, S, S]`` (uint8) -> ``[..., out_dim]``.
+
+    Three stride-2 convolutions (32, 64, 64 channels) with ReLU, flattened, then a linear layer
+    and LayerNorm. Pixels are scaled to ``[-0.5, 0.5]``. Any leading shape (``[N]`` at inference,
+    ``[B, L]`` in training) is folded into one batch axis for the convolutions; steps are encoded
+    independently.
+
+    Args:
+        image_size: ``S``.
+        out_dim: feature width.
+    """
+
+    def __init__(self, image_size: int, out_dim: int):
+        super().__init__()
+        if image_size < 8:
+            raise ValueError(f"data.image_size must be >= 8 pixels for the conv encoder, got {image_size}")
+        if out_dim < 1:
+            raise ValueError(f"the image feature width must be >= 1, got {out_dim}")
+        self.image_size = image_size
+        self.conv = nn.Sequential(
+            nn.Conv2d(3, 32, 5, stride=2, padding=2),
+            nn.ReLU(),
+            nn.Conv2d(32, 64, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(64, 64, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Flatten(),
+        )
+        with torch.no_grad():
+            width = self.conv(torch.zeros(1, 3, image_size, image_size)).shape[-1]
+        self.out = nn.Sequential(nn.Linear(width, out_dim), nn.LayerNorm(out_dim))
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        lead = pixels.shape[:-3]
+        if pixels.shape[-3:] != (3, self.image_size, self.image_size):
+            raise ValueError(
+                f"pixels of shape {list(pixels.shape)}: expected [..., 3, {self.image_size}, {self.image_size}]"
+            )
+        x = pixels.reshape(-1, *pixels.shape[-3:]).float() / 255.0 - 0.5
+        return self.out(self.conv(x)).reshape(*lead, -1)

@@ -1,0 +1,93 @@
+"""Image observations: rendered demonstrations, the conv encoder, the MLP head on images.
+
+Rendering needs MuJoCo's off-screen backend (``MUJOCO_GL=egl``), chosen when MuJoCo is imported:
+the collection runs it in worker processes; the independent reference render below runs in a
+subprocess of its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from tar_rl.data import build_dataset
+from tar_rl.policies import DataInfo, build_policy
+from tar_rl.policies.vision import ConvEncoder
+
+S = 32
+
+_REFERENCE = """
+import json, sys
+import mujoco, numpy as np
+from tar_rl.collectors import tasks
+env = tasks.make_env("reach-v3")
+env.set_task(tasks.variation("reach-v3", 0, 0))
+obs, _ = env.reset()
+env.model.vis.quality.shadowsize = 0
+r = mujoco.Renderer(env.model, {S}, {S})
+r.update_scene(env.data, camera="corner2")
+img = r.render()[::-1, ::-1].transpose(2, 0, 1)  # corner2 is upside down: rotate by 180 degrees
+print(json.dumps({{"obs": obs.tolist(), "img": img.tolist()}}))
+"""
+
+
+@pytest.fixture(scope="module")
+def image_dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("image-datasets")
+    return build_dataset(root, ["reach"], 1, seed=0, image_size=S, workers=1, progress=False, verbose=False)
+
+
+@pytest.mark.slow
+def test_rendered_demonstrations_store_the_image_of_each_observation(image_dataset):
+    data = image_dataset.data
+    pixels = data["pixels"]
+    assert pixels.dtype == torch.uint8 and pixels.shape == (len(data), 3, S, S)
+    assert image_dataset.metadata["image_size"] == S
+    assert not torch.equal(pixels[0], pixels[-1])  # the arm moved
+    env = dict(os.environ, MUJOCO_GL="egl")
+    out = subprocess.run([sys.executable, "-c", _REFERENCE.format(S=S)], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    ref = json.loads(out.stdout.strip().splitlines()[-1])
+    np.testing.assert_allclose(data["observation"][0].numpy(), np.array(ref["obs"], np.float32), atol=1e-6)
+    np.testing.assert_array_equal(pixels[0].numpy(), np.array(ref["img"], np.uint8))
+
+
+def test_conv_encoder_folds_leading_axes_and_checks_the_size():
+    torch.manual_seed(0)
+    enc = ConvEncoder(S, 16)
+    pixels = torch.randint(0, 256, (2, 3, 3, S, S), dtype=torch.uint8)
+    out = enc(pixels)
+    assert out.shape == (2, 3, 16)
+    torch.testing.assert_close(out[1, 2], enc(pixels[1, 2][None])[0])
+    with pytest.raises(ValueError, match="expected"):
+        enc(torch.zeros(2, 3, S + 1, S + 1, dtype=torch.uint8))
+
+
+def test_mlp_on_images_reads_pixels_and_proprioception_only():
+    torch.manual_seed(0)
+    policy = build_policy({"name": "mlp", "observation": "image", "hidden": [32]}, DataInfo(image_size=S))
+    assert "pixels" in policy.actor.in_keys and "pixels" in policy.keys
+    net = policy.actor.module
+    obs = torch.randn(2, 39)
+    pixels = torch.randint(0, 256, (2, 3, S, S), dtype=torch.uint8)
+    task = torch.tensor([1, 2])
+    base = net(obs, task, pixels)
+    moved = obs.clone()
+    moved[:, 4:] += 5.0  # object and goal positions: not seen by an image policy
+    torch.testing.assert_close(net(moved, task, pixels), base)
+    moved[:, :4] += 1.0  # the hand and gripper: seen
+    assert not torch.allclose(net(moved, task, pixels), base)
+    assert not torch.allclose(net(obs, task, 255 - pixels), base)
+
+
+def test_image_policy_needs_a_dataset_with_images():
+    with pytest.raises(ValueError, match=r"data\.image_size"):
+        build_policy({"name": "mlp", "observation": "image"}, DataInfo())
+    with pytest.raises(ValueError, match=r"policy\.observation"):
+        build_policy({"name": "mlp", "observation": "depth"}, DataInfo())
