@@ -613,7 +613,8 @@ class Trainer:
         self.scheduler.step()
         if self.ema is not None:
             self.ema.update_parameters(self.policy.actor)
-        scalars = {n: float(out[n].detach()) for n in _LOGGED}
+        logged = [*_LOGGED, *(k for k in out.keys() if isinstance(k, str) and k.startswith("aux_"))]
+        scalars = {n: float(out[n].detach()) for n in logged}
         scalars["grad_norm"] = float(grad_norm)
         return scalars
 
@@ -684,7 +685,8 @@ class Trainer:
         return table
 
     def _log_train(self, step: int, sums: dict[str, float], n_ok: int) -> None:
-        names = [*_LOGGED, "grad_norm"]
+        # Extra scalar losses of the head (e.g. ACT's KL as aux_loss_kl): the same on every rank.
+        names = [*_LOGGED, *sorted(n for n in sums if n.startswith("aux_")), "grad_norm"]
         totals = self.dist.all_sum([sums.get(n, 0.0) for n in names] + [float(n_ok)])
         count = totals[-1]
         if count:

@@ -292,6 +292,9 @@ def test_smoke_job_through_the_recipe(tmp_path, data_root):
     assert summary["finished"] and summary["steps"] == 20 and run_dir.name.startswith("tar-act-")
     assert math.isfinite(summary["final_train_loss"])
     assert len(pd.read_csv(run_dir / "weights.csv")) > 0  # the recording reads the head's per-step loss
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    kl = metrics[(metrics.phase == "train") & (metrics.name == "aux_loss_kl")]
+    assert len(kl) == 4 and (kl.value >= 0).all()  # the KL term is logged every logging.every=5 steps
     state = load_checkpoint(run_dir)
     actor = policy_from_checkpoint(state)
     assert actor.horizon == 4
