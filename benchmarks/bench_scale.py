@@ -70,12 +70,13 @@ def _train_rank(rank: int, world: int, steps: int, store: str, out: str) -> None
     model = objective
     if world > 1:
         import torch.distributed as dist
-        from torch.nn.parallel import DistributedDataParallel
+
+        from tar_rl.distributed import data_parallel
 
         dist.init_process_group(
             "gloo", store=dist.FileStore(store, world), rank=rank, world_size=world, timeout=timedelta(minutes=5)
         )
-        model = DistributedDataParallel(objective, forward_sync_buffers=False)
+        model = data_parallel(objective)
     optimizer = torch.optim.AdamW(objective.parameters(), lr=1e-4)
     share = B // world
     batches = [_batch(B, s)[rank * share : (rank + 1) * share] for s in range(4)]

@@ -497,10 +497,8 @@ class Trainer:
         self.objective = make_objective(config, self.policy).to(self.device)
         self.model = self.objective
         if dist.active:
-            from torch.nn.parallel import DistributedDataParallel
-
             ids = [self.device.index] if self.device.type == "cuda" else None
-            self.model = DistributedDataParallel(self.objective, device_ids=ids, forward_sync_buffers=False)
+            self.model = distributed.data_parallel(self.objective, device_ids=ids)
         self.params = [p for p in self.objective.parameters() if p.requires_grad]
         self.optimizer, self.scheduler = make_optimizer(config, self.params)
         self.ema = None

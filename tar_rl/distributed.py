@@ -21,11 +21,27 @@ from typing import Any
 import torch
 import torch.distributed as torch_dist
 
-__all__ = ["Dist", "init", "shutdown"]
+__all__ = ["Dist", "data_parallel", "init", "shutdown"]
 
 # Long enough for rank 0 to collect a demonstration dataset while the others wait at a barrier.
 # A rank that dies does not leave the others waiting this long: torchrun stops the whole group.
 TIMEOUT = datetime.timedelta(hours=2)
+
+
+def data_parallel(module: torch.nn.Module, device_ids: list[int] | None = None) -> torch.nn.Module:
+    """``DistributedDataParallel(module)`` without buffer syncing at each forward.
+
+    Every rank holds the same buffers (observation statistics, the TAR schedule step), updated
+    identically, so there is nothing to broadcast. torch 2.13 names the switch
+    ``forward_sync_buffers``; earlier releases ``broadcast_buffers``.
+    """
+    import inspect
+
+    from torch.nn.parallel import DistributedDataParallel
+
+    params = inspect.signature(DistributedDataParallel.__init__).parameters
+    switch = "forward_sync_buffers" if "forward_sync_buffers" in params else "broadcast_buffers"
+    return DistributedDataParallel(module, device_ids=device_ids, **{switch: False})
 
 
 @dataclass(frozen=True)

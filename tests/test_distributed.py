@@ -58,10 +58,10 @@ def _rank_worker(rank: int, world: int, store_path: str, out_dir: str) -> None:
     store = torch_dist.FileStore(store_path, world)
     torch_dist.init_process_group("gloo", store=store, rank=rank, world_size=world, timeout=timedelta(seconds=120))
     try:
-        from torch.nn.parallel import DistributedDataParallel
+        from tar_rl.distributed import data_parallel
 
         objective = _objective()
-        model = DistributedDataParallel(objective, forward_sync_buffers=False)
+        model = data_parallel(objective)
         share = B // world
         out = model(_batch()[rank * share : (rank + 1) * share])
         out["loss_tar"].backward()
