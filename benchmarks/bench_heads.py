@@ -38,7 +38,6 @@ ratio of medians; baseline ``uniform``), ``inference`` (ms per batched env step,
 from __future__ import annotations
 
 import argparse
-import gc
 import math
 import os
 import sys
@@ -47,7 +46,6 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import torch
 from tensordict import TensorDict
@@ -57,7 +55,7 @@ from tar_rl.objectives import TARLoss
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import git_commit, median_iqr
+from common import git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "heads.csv"
@@ -203,30 +201,6 @@ def make_inference(head: str, n_envs: int, calls: int, device: torch.device, see
 # ---------------------------------------------------------------------------------------------
 # Timing
 # ---------------------------------------------------------------------------------------------
-
-
-def interleaved(fns: dict, reps: int, seed: int) -> dict[object, np.ndarray]:
-    """Per variant, ``reps`` samples of seconds per call; variants shuffled within each round.
-
-    The garbage collector is off while timing and runs between rounds, outside the timed region.
-    """
-    rng = np.random.default_rng(seed)
-    names = list(fns)
-    times = {name: np.empty(reps) for name in names}
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        for r in range(reps):
-            for i in rng.permutation(len(names)):
-                name = names[i]
-                start = time.perf_counter()
-                fns[name]()
-                times[name][r] = time.perf_counter() - start
-            gc.collect()
-    finally:
-        if was_enabled:
-            gc.enable()
-    return times
 
 
 def bench_train(heads, args, device) -> list[dict]:

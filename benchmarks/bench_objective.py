@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import gc
 import math
 import os
 import sys
@@ -40,7 +39,6 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import torch
 from tensordict import TensorDict
@@ -52,7 +50,7 @@ from tar_rl.io import write_csv_atomic
 from tar_rl.objectives import TARLoss, tar_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import git_commit, median_iqr
+from common import git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "objective.csv"
@@ -174,34 +172,6 @@ def tar_exact(losses: Tensor, valid: Tensor) -> Tensor:
 # ---------------------------------------------------------------------------------------------
 
 
-def interleaved(fns: dict[str, Callable[[], object]], reps: int, inner: int, seed: int) -> dict[str, np.ndarray]:
-    """Per variant, ``reps`` samples of seconds per call; variants shuffled within each round.
-
-    Each sample times ``inner`` consecutive calls and divides. The garbage collector is off
-    while timing and runs between rounds, outside the timed region.
-    """
-    rng = np.random.default_rng(seed)
-    names = list(fns)
-    times = {name: np.empty(reps) for name in names}
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        for r in range(reps):
-            for i in rng.permutation(len(names)):
-                name = names[i]
-                fn = fns[name]
-                start = time.perf_counter()
-                for _ in range(inner):
-                    fn()
-                times[name][r] = (time.perf_counter() - start) / inner
-            if r % 20 == 19:
-                gc.collect()
-    finally:
-        if was_enabled:
-            gc.enable()
-    return times
-
-
 # ---------------------------------------------------------------------------------------------
 # The two sections
 # ---------------------------------------------------------------------------------------------
@@ -214,7 +184,7 @@ def bench_train_step(reps: int, warmup: int, seed: int) -> tuple[list[dict], lis
     for step in steps.values():
         for _ in range(warmup):
             step()
-    times = interleaved(steps, reps, inner=1, seed=seed)
+    times = interleaved(steps, reps, seed=seed, collect_every=20)
 
     rows: list[dict] = []
     stats = {v: median_iqr(t * 1e3) for v, t in times.items()}
@@ -297,7 +267,7 @@ def bench_weighting(reps: int, calls: int, seed: int) -> tuple[list[dict], list[
             for _ in range(max(calls, 20)):
                 fn(losses, valid)
         calls_fns = {name: (lambda fn=fn: fn(losses, valid)) for name, fn in fns.items()}
-        times = interleaved(calls_fns, reps, inner=calls, seed=seed)
+        times = interleaved(calls_fns, reps, seed=seed, inner=calls, collect_every=20)
 
     stats = {v: median_iqr(t * 1e6) for v, t in times.items()}
     rows: list[dict] = []
