@@ -16,8 +16,8 @@ number of env steps per rollout: the evaluator's rows of an untimed first run (d
 fix, for each rollout, the steps the raw side replays.
 
 * ``raw``: bare MetaWorld envs, uniform random actions, a plain ``env.step`` loop; one env
-  built per task per process, ``set_task`` + ``reset`` per rollout, then exactly the rollout's
-  step count.
+  per task per process (kept between rounds, as the evaluator keeps its envs), ``set_task`` +
+  ``reset`` per rollout, then exactly the rollout's step count.
 * ``eval``: ``tar_rl.collectors.evaluate.evaluate`` with the trained policy: batched TorchRL env,
   one policy call per batch step, refills, env construction, bookkeeping.
 
@@ -74,12 +74,16 @@ COLUMNS = [
 SEED = 1000
 
 
+# The raw side's envs, one per task, kept in the process between rounds like the evaluator's.
+_RAW_ENVS: dict = {}
+
+
 def raw_shard(shard, variations=None, rng_seed=0) -> int:
     """Random-action rollouts on bare MetaWorld envs; ``shard``: (task, k, steps) triples. Returns the steps."""
     from tar_rl.collectors import tasks
 
     tasks.add_variations(variations or {})
-    envs = {}
+    envs = _RAW_ENVS
     rng = np.random.default_rng(rng_seed)
     executed = 0
     for task, k, steps in shard:
@@ -91,8 +95,6 @@ def raw_shard(shard, variations=None, rng_seed=0) -> int:
         for _ in range(steps):
             env.step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
         executed += steps
-    for env in envs.values():
-        env.close()
     return executed
 
 
