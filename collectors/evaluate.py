@@ -6,7 +6,8 @@ Protocol (TAR paper, Sec. III-A): rollout ``k`` of a task runs on variation
 are computed from these rows by ``tar_rl.metrics``.
 
 Execution. The (task, rollout) pairs, in ``TASKS`` order, are cut into ``workers`` contiguous
-shards, one independent process each ('spawn' context, one torch thread). A worker runs its
+shards, one process each ('spawn' context, one torch thread; kept for the next call unless
+``keep_workers=False``). A worker runs its
 shard (interleaved over its tasks) on ``envs_per_worker`` slots of one batched TorchRL env
 (``envs.make_batched_env``: a ``GymWrapper`` around a vector of MetaWorld envs that steps only
 the running slots): the policy is called once per step on the whole batch (under
@@ -36,6 +37,7 @@ import os
 import warnings
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pandas as pd
@@ -52,6 +54,7 @@ __all__ = [
     "MAX_HORIZON",
     "ExpertPolicy",
     "clear_env_cache",
+    "close_workers",
     "default_envs_per_worker",
     "evaluate",
     "write_rollouts",
@@ -159,6 +162,7 @@ def evaluate(
     envs_per_worker: int | None = None,
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
+    keep_workers: bool = True,
 ) -> pd.DataFrame:
     """Evaluate ``policy`` on ``tasks_spec`` (see ``tasks.resolve_tasks``); one row per rollout (``COLUMNS``).
 
@@ -178,6 +182,10 @@ def evaluate(
             (task, rollout) list, e.g. one share per process of a distributed job. The rows of
             the ``count`` shards, concatenated and sorted by ``task_id`` and ``variation_index``,
             are the rows of the whole evaluation (each rollout depends only on its variation).
+        keep_workers: keep the worker processes (and their envs, compiled models and variations)
+            for the next call with the same number of workers, as a training job that evaluates
+            every few thousand steps does: starting a process and importing torch takes seconds.
+            ``close_workers()`` ends them (they also end with this process).
 
     Rows are ordered by task (``TASKS`` order) then rollout, whatever the number of workers.
     """
@@ -204,11 +212,10 @@ def evaluate(
         if len(shards) == 1:
             rows = _run_shard(policy, shards[0], seed, horizon, batch, progress=bar.update)
         else:
-            import multiprocessing as mp
-
-            ctx = mp.get_context("spawn")
-            with ctx.Manager() as manager, ProcessPoolExecutor(len(shards), mp_context=ctx) as pool:
-                queue = manager.Queue()
+            pool, queue = _worker_pool(len(shards))
+            while not queue.empty():  # progress left over from an interrupted call
+                queue.get()
+            try:
                 futures = [
                     pool.submit(_worker, policy, shard, seed, horizon, batch, queue, _known_variations(shard, seed))
                     for shard in shards
@@ -224,10 +231,53 @@ def evaluate(
                     shard_rows, built = f.result()  # re-raises a worker's error
                     rows.extend(shard_rows)
                     tasks.add_variations(built)  # the next evaluation's workers get them
+            except BaseException as err:
+                if not isinstance(err, Exception) or isinstance(err, BrokenProcessPool):
+                    close_workers()  # interrupted, or a worker died: start afresh next time
+                raise
+            finally:
+                if not keep_workers:
+                    close_workers()
     finally:
         bar.close()
     rows.sort(key=lambda row: (row["task_id"], row["variation_index"]))
     return pd.DataFrame(rows, columns=list(COLUMNS))
+
+
+# The worker processes kept between evaluate() calls: the executor, the progress queue's manager,
+# the queue, and the number of workers.
+_POOL: dict = {}
+
+
+def _init_worker() -> None:
+    torch.set_num_threads(1)
+
+
+def _worker_pool(n: int):
+    """A 'spawn' process pool of ``n`` workers and a progress queue, kept between calls."""
+    if _POOL.get("workers") != n:
+        close_workers()
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        manager = ctx.Manager()
+        _POOL.update(
+            executor=ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker),
+            manager=manager,
+            queue=manager.Queue(),
+            workers=n,
+        )
+    return _POOL["executor"], _POOL["queue"]
+
+
+def close_workers() -> None:
+    """End the evaluation worker processes kept by ``evaluate(..., keep_workers=True)``."""
+    executor, manager = _POOL.get("executor"), _POOL.get("manager")
+    _POOL.clear()
+    if executor is not None:
+        executor.shutdown(wait=True, cancel_futures=True)
+    if manager is not None:
+        manager.shutdown()
 
 
 def _interleave(shard: list) -> list:

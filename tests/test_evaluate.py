@@ -338,3 +338,18 @@ def test_reused_envs_give_the_rows_of_fresh_envs():
         assert (row.success, row.steps, row[tuple(runs[0].columns).index("return") + 1]) == (success, steps, total)
     ev.clear_env_cache()
     assert ev._idle_count() == 0
+
+
+@pytest.mark.slow
+def test_kept_workers_are_reused_and_give_the_same_rows(expert_rows):
+    ev.close_workers()
+    first = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
+    executor = ev._POOL["executor"]
+    with pytest.raises(ValueError, match="non-finite actions"):  # a worker's error leaves the pool usable
+        evaluate(ConstPolicy(0.0, nan_at_step=2), EASY, 1, horizon=5, workers=2, progress=False)
+    second = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
+    assert ev._POOL["executor"] is executor
+    pd.testing.assert_frame_equal(first, expert_rows)
+    pd.testing.assert_frame_equal(second, expert_rows)
+    evaluate(ConstPolicy(0.0), "reach", 2, horizon=3, workers=2, progress=False, keep_workers=False)
+    assert ev._POOL == {}
