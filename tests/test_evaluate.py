@@ -280,11 +280,13 @@ def test_bench_eval_quick_writes_csv(tmp_path):
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     out = tmp_path / "eval.csv"
-    bench.main(["--quick", "--sections", "one_process", "--out", str(out)])
+    bench.main(["--quick", "--sections", "one_process", "--out", str(out), "--cache", str(tmp_path / "cache")])
     df = pd.read_csv(out)
     assert list(df.columns) == bench.COLUMNS
     assert list(df["rep"].astype(str)) == ["0", "median"]
     assert (df["ratio"] > 0).all() and (df["raw_steps_per_s"] > 0).all()
+    assert df["success_rate"].between(0, 1).all() and (df["mean_steps"] >= 1).all()
+    assert any((tmp_path / "cache").glob("mlp-*.pt"))  # the trained policy is cached
 
 
 @pytest.mark.parametrize(
