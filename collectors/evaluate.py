@@ -217,7 +217,7 @@ def evaluate(
                 queue.get()
             try:
                 futures = [
-                    pool.submit(_worker, policy, shard, seed, horizon, batch, queue, _known_variations(shard, seed))
+                    pool.submit(_worker, policy, shard, seed, horizon, batch, _known_variations(shard, seed))
                     for shard in shards
                 ]
                 pending = set(futures)
@@ -231,6 +231,7 @@ def evaluate(
                     shard_rows, built = f.result()  # re-raises a worker's error
                     rows.extend(shard_rows)
                     tasks.add_variations(built)  # the next evaluation's workers get them
+                bar.update(len(jobs) - bar.n)  # counts still in the queue's pipe are drained next call
             except BaseException as err:
                 if not isinstance(err, Exception) or isinstance(err, BrokenProcessPool):
                     close_workers()  # interrupted, or a worker died: start afresh next time
@@ -244,27 +245,30 @@ def evaluate(
     return pd.DataFrame(rows, columns=list(COLUMNS))
 
 
-# The worker processes kept between evaluate() calls: the executor, the progress queue's manager,
-# the queue, and the number of workers.
+# The worker processes kept between evaluate() calls: the executor, the progress queue (handed to
+# the workers when they start: no manager process, so nothing outlives a killed parent), and the
+# number of workers.
 _POOL: dict = {}
+_PROGRESS = None  # in a worker: the queue its progress goes to
 
 
-def _init_worker() -> None:
+def _init_worker(queue) -> None:
+    global _PROGRESS
+    _PROGRESS = queue
     torch.set_num_threads(1)
 
 
 def _worker_pool(n: int):
-    """A 'spawn' process pool of ``n`` workers and a progress queue, kept between calls."""
+    """A 'spawn' process pool of ``n`` workers and their progress queue, kept between calls."""
     if _POOL.get("workers") != n:
         close_workers()
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
-        manager = ctx.Manager()
+        queue = ctx.Queue()
         _POOL.update(
-            executor=ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker),
-            manager=manager,
-            queue=manager.Queue(),
+            executor=ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker, initargs=(queue,)),
+            queue=queue,
             workers=n,
         )
     return _POOL["executor"], _POOL["queue"]
@@ -272,12 +276,12 @@ def _worker_pool(n: int):
 
 def close_workers() -> None:
     """End the evaluation worker processes kept by ``evaluate(..., keep_workers=True)``."""
-    executor, manager = _POOL.get("executor"), _POOL.get("manager")
+    executor, queue = _POOL.get("executor"), _POOL.get("queue")
     _POOL.clear()
     if executor is not None:
         executor.shutdown(wait=True, cancel_futures=True)
-    if manager is not None:
-        manager.shutdown()
+    if queue is not None:
+        queue.close()
 
 
 def _interleave(shard: list) -> list:
@@ -309,11 +313,10 @@ def _known_variations(shard, seed) -> dict:
     return tasks.cached_variations(_variation_keys(shard, seed))
 
 
-def _worker(policy, shard, seed, horizon, batch, queue, variations) -> tuple[list[dict], dict]:
+def _worker(policy, shard, seed, horizon, batch, variations) -> tuple[list[dict], dict]:
     """Run one shard in a worker process; returns its rows and the shard's variations (for the parent's cache)."""
-    torch.set_num_threads(1)
     tasks.add_variations(variations)
-    rows = _run_shard(policy, shard, seed, horizon, batch, progress=queue.put)
+    rows = _run_shard(policy, shard, seed, horizon, batch, progress=_PROGRESS.put)
     return rows, _known_variations(shard, seed)
 
 
