@@ -292,6 +292,11 @@ def main(argv=None) -> None:
     parser.add_argument("--reps", type=int, default=3, help="repetitions of collect_per_step")
     parser.add_argument("--e2e-reps", type=int, default=2, help="repetitions of collect_end_to_end (alternating)")
     parser.add_argument("--sample-reps", type=int, default=200, help="repetitions of the segments section")
+    parser.add_argument(
+        "--sections",
+        default="collect_per_step,collect_end_to_end,segments",
+        help="comma-separated sections to run (default: all three)",
+    )
     parser.add_argument("--quick", action="store_true", help="2 tasks x 2 demos, few repetitions (smoke test)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = parser.parse_args(argv)
@@ -308,10 +313,18 @@ def main(argv=None) -> None:
         args.tasks, args.demos, args.reps, args.e2e_reps, args.sample_reps = "reach,button-press-topdown", 2, 1, 1, 20
     names = tasks.resolve_tasks(args.tasks)
 
-    rows = bench_collect_per_step(names, args.demos, args.seed, args.reps)
-    rows += bench_collect_end_to_end(names, args.demos, args.seed, args.workers, args.e2e_reps)
-    with tempfile.TemporaryDirectory(prefix="bench_data_") as root:
-        rows += bench_segments(names, args.demos, args.seed, args.workers, args.sample_reps, root)
+    sections = args.sections.split(",")
+    known = ("collect_per_step", "collect_end_to_end", "segments")
+    if not sections or any(sec not in known for sec in sections):
+        raise ValueError(f"--sections must name some of {', '.join(known)}, got {args.sections!r}")
+    rows = []
+    if "collect_per_step" in sections:
+        rows += bench_collect_per_step(names, args.demos, args.seed, args.reps)
+    if "collect_end_to_end" in sections:
+        rows += bench_collect_end_to_end(names, args.demos, args.seed, args.workers, args.e2e_reps)
+    if "segments" in sections:
+        with tempfile.TemporaryDirectory(prefix="bench_data_") as root:
+            rows += bench_segments(names, args.demos, args.seed, args.workers, args.sample_reps, root)
     df = pd.DataFrame(rows)
     df["tasks"] = args.tasks
     df["torch"] = torch.__version__

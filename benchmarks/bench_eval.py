@@ -4,27 +4,39 @@ Run from the repository root::
 
     .venv/bin/python benchmarks/bench_eval.py [--quick] [--tasks T] [--rollouts R] [--workers W] [--out PATH]
 
+The policy is a TRAINED small MLP (tar-rl's ``mlp`` head, 2 x 256, learned task embedding,
+normalised observations), fitted by behaviour cloning (plain MSE, ``--train-steps`` AdamW steps)
+to ``--demos`` expert demonstrations per task; dataset and weights are cached under ``--cache``
+(the same settings load them again). It succeeds on part of the rollouts, which then stop at
+their first success, so rollouts have realistic, varied lengths and slots are refilled often.
+
 Both sides run the same (task, rollout) pairs on the same variations (``tasks.variation(task,
-1000, k)``), ``horizon`` steps each, and count executed env steps per second of wall time:
+1000, k)``, built once in this process and handed to workers on both sides) and execute the same
+number of env steps per rollout: the evaluator's rows of an untimed first run (deterministic)
+fix, for each rollout, the steps the raw side replays.
 
 * ``raw``: bare MetaWorld envs, uniform random actions, a plain ``env.step`` loop; one env
-  built per task per process, ``set_task`` + ``reset`` per rollout.
-* ``eval``: ``tar_rl.collectors.evaluate.evaluate`` with a small MLP policy
-  (39-256-256-4, tanh; random weights, so it rarely succeeds and rollouts run to the horizon),
-  which builds its batched TorchRL envs, runs the policy once per batch step, etc.
+  per task per process (kept between rounds, as the evaluator keeps its envs), ``set_task`` +
+  ``reset`` per rollout, then exactly the rollout's step count.
+* ``eval``: ``tar_rl.collectors.evaluate.evaluate`` with the trained policy: batched TorchRL env,
+  one policy call per batch step, refills, env construction, bookkeeping.
 
-Two sections, each repeated ``--reps`` times with raw and eval alternating (interleaved) so that
-machine noise hits both alike, after ``--warmup`` untimed rounds (the first round pays one-off
-costs, e.g. building ``metaworld.MT1`` objects that later rounds in this process find cached):
+Throughput is executed env steps per second of wall time. Two sections, each repeated
+``--reps`` times with raw and eval alternating (interleaved) so that machine noise hits both
+alike, after ``--warmup`` untimed rounds (the first round pays one-off costs):
 
 * ``one_process``: everything in this process (``workers=1``): the per-step overhead of the
   evaluator (TorchRL env, policy, bookkeeping, env construction) against the bare loop.
-* ``all_cores``: ``--workers`` processes ('spawn') on both sides, over the same contiguous shards;
-  wall time from submission to the last result, process start-up included on both sides.
+* ``all_cores``: ``--workers`` processes on both sides, over the same contiguous shards; wall
+  time from submission to the last result. Both sides keep their worker processes between
+  rounds (the evaluator's default ``keep_workers=True``, as in a training job that evaluates
+  every few thousand steps), so the warm-up round pays their start-up and the timed rounds
+  measure the steady state.
 
 Output: a table on stdout and a tidy CSV (default ``benchmarks/results/eval.csv``, written
 atomically), one row per (section, rep) with ``raw_steps_per_s``, ``eval_steps_per_s``, ``ratio``
-and the settings, plus a ``median`` row per section.
+and the settings, plus a ``median`` row per section (and the policy's success rate and mean
+steps per rollout).
 """
 
 from __future__ import annotations
@@ -32,7 +44,9 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+import tempfile
 import time
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -56,59 +70,107 @@ COLUMNS = [
     "horizon",
     "workers",
     "envs_per_worker",
+    "success_rate",
+    "mean_steps",
+    "commit",
 ]
 SEED = 1000
 
 
-def raw_shard(shard, horizon, rng_seed=0) -> int:
-    """Random-action rollouts on bare MetaWorld envs; returns the executed steps."""
+# The raw side's envs, one per task, kept in the process between rounds like the evaluator's.
+_RAW_ENVS: dict = {}
+
+
+def raw_shard(shard, variations=None, rng_seed=0) -> int:
+    """Random-action rollouts on bare MetaWorld envs; ``shard``: (task, k, steps) triples. Returns the steps."""
     from tar_rl.collectors import tasks
 
-    envs = {}
+    tasks.add_variations(variations or {})
+    envs = _RAW_ENVS
     rng = np.random.default_rng(rng_seed)
-    steps = 0
-    for task, k in shard:
+    executed = 0
+    for task, k, steps in shard:
         if task not in envs:
             envs[task] = tasks.make_env(task)
         env = envs[task]
         env.set_task(tasks.variation(task, SEED, k))
         env.reset()
-        for _ in range(horizon):
+        for _ in range(steps):
             env.step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
-            steps += 1
-    return steps
+        executed += steps
+    return executed
 
 
-def _shards(names, rollouts, workers):
-    jobs = [(t, k) for t in names for k in range(rollouts)]
+def _shards(jobs, workers):
+    """The evaluator's contiguous split of the (task, rollout) list over ``workers`` processes."""
     bounds = np.linspace(0, len(jobs), workers + 1).round().astype(int)
     return [jobs[a:b] for a, b in itertools.pairwise(bounds) if b > a]
 
 
-def make_policy(seed=0):
+def trained_policy(names, demos: int, train_steps: int, cache: Path, seed: int = 0):
+    """tar-rl's MLP head (2 x 256, task embedding) behaviour-cloned on ``demos`` expert episodes per task.
+
+    The dataset and the trained weights are cached under ``cache`` (keyed by the settings).
+    """
     import torch
-    from tensordict.nn import TensorDictModule
-    from torch import nn
 
+    from tar_rl.data import build_dataset
+    from tar_rl.policies import DataInfo, build_policy
+
+    ds = build_dataset(cache, list(names), demos, seed=seed, workers=1, progress=False, verbose=False)
+    info = DataInfo.from_metadata(ds.metadata)
+    policy = build_policy({"name": "mlp", "hidden": [256, 256]}, info).actor
+    weights = cache / f"mlp-{ds.path.name}-{train_steps}-s{seed}.pt"
+    if weights.exists():
+        policy.load_state_dict(torch.load(weights))
+        return policy
+    data = ds.data
+    obs = data["observation"].clone()
+    target = data["action"].clone()
+    task_id = data["task_id"].clone()
+    gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    net = nn.Sequential(nn.Linear(39, 256), nn.Tanh(), nn.Linear(256, 256), nn.Tanh(), nn.Linear(256, 4), nn.Tanh())
-    return TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
+    net = policy.module
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-3)
+    for _ in range(train_steps):
+        idx = torch.randint(len(obs), (256,), generator=gen)
+        loss = torch.nn.functional.mse_loss(net(obs[idx], task_id[idx]), target[idx])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    tmp = weights.with_suffix(".tmp")
+    torch.save(policy.state_dict(), tmp)
+    tmp.replace(weights)
+    return policy
 
 
-def run_raw(names, rollouts, horizon, workers) -> float:
-    shards = _shards(names, rollouts, workers)
-    start = time.perf_counter()
-    if workers == 1:
-        steps = raw_shard(shards[0], horizon)
-    else:
+_RAW_POOL: dict = {}
+
+
+def _pool(workers):
+    """The raw side's 'spawn' worker processes, kept between rounds as the evaluator keeps its own."""
+    if workers not in _RAW_POOL:
         import multiprocessing as mp
 
-        with ProcessPoolExecutor(len(shards), mp_context=mp.get_context("spawn")) as pool:
-            steps = sum(pool.map(raw_shard, shards, [horizon] * len(shards)))
+        _RAW_POOL[workers] = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
+    return _RAW_POOL[workers]
+
+
+def run_raw(jobs, workers) -> float:
+    """``jobs``: (task, k, steps) triples, in the evaluator's order; returns env steps/s."""
+    from tar_rl.collectors import tasks
+
+    shards = _shards(jobs, workers)
+    start = time.perf_counter()
+    if workers == 1:
+        steps = raw_shard(shards[0])
+    else:
+        keys = [{(task, SEED + k // tasks.VARIATIONS_PER_SEED) for task, k, _ in sh} for sh in shards]
+        steps = sum(_pool(len(shards)).map(raw_shard, shards, [tasks.cached_variations(k) for k in keys]))
     return steps / (time.perf_counter() - start)
 
 
-def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker) -> float:
+def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker) -> tuple[float, pd.DataFrame]:
     from tar_rl.collectors.evaluate import evaluate
 
     start = time.perf_counter()
@@ -122,7 +184,7 @@ def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker) -> floa
         envs_per_worker=envs_per_worker,
         progress=False,
     )
-    return int(df["steps"].sum()) / (time.perf_counter() - start)
+    return int(df["steps"].sum()) / (time.perf_counter() - start), df
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -135,41 +197,54 @@ def main(argv=None) -> pd.DataFrame:
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--warmup", type=int, default=1, help="untimed rounds per section first (file caches, imports)")
     parser.add_argument("--sections", default="one_process,all_cores")
+    parser.add_argument("--demos", type=int, default=10, help="expert demonstrations per task to train the policy on")
+    parser.add_argument("--train-steps", type=int, default=3000, help="AdamW steps of behaviour cloning")
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "tar-rl-bench-eval",
+        help="folder for the demonstrations and the trained policy",
+    )
     parser.add_argument("--quick", action="store_true", help="a smoke run: 2 tasks, 2 rollouts, horizon 50, 1 rep")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "eval.csv")
     args = parser.parse_args(argv)
     if args.quick:
         args.tasks, args.rollouts, args.horizon, args.reps = "reach,drawer-close", 2, 50, 1
+        args.demos, args.train_steps = 2, 50
 
     import torch
+    from common import git_commit
 
     from tar_rl.collectors import tasks
     from tar_rl.collectors.evaluate import _cpu_count
 
     torch.set_num_threads(1)
+    warnings.filterwarnings("ignore", message="The name target_actor_network_params")  # torchrl's BCLoss
     names = tasks.resolve_tasks(args.tasks)
     workers = args.workers or _cpu_count()
-    policy = make_policy()
+    policy = trained_policy(names, args.demos, args.train_steps, args.cache)
+    # The rows are deterministic: one untimed run fixes the steps of every rollout for the raw side
+    # (and builds the variations in this process, for both sides).
+    _, first = run_eval(policy, names, args.rollouts, args.horizon, 1, args.envs_per_worker)
+    steps = {(r.task, r.variation_index): int(r.steps) for r in first.itertuples()}
+    jobs = [(t, k, steps[(t, k)]) for t in names for k in range(args.rollouts)]
+    success, mean_steps = float(first["success"].mean()), float(first["steps"].mean())
+    print(f"policy: success {success:.2f}, {mean_steps:.0f} steps per rollout on average", flush=True)
     rows = []
     for section in args.sections.split(","):
         if section not in ("one_process", "all_cores"):
             raise ValueError(f"unknown section {section!r}: choose one_process and/or all_cores")
         w = 1 if section == "one_process" else workers
         for _ in range(0 if args.quick else args.warmup):
-            run_raw(names, args.rollouts, args.horizon, w)
+            run_raw(jobs, w)
             run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
         for rep in range(args.reps):
-            raw = run_raw(names, args.rollouts, args.horizon, w)
-            evl = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
-            rows.append(
-                {
-                    "section": section,
-                    "rep": rep,
-                    "raw_steps_per_s": raw,
-                    "eval_steps_per_s": evl,
-                    "ratio": evl / raw,
-                }
-            )
+            raw = run_raw(jobs, w)
+            evl, df = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
+            if not df.equals(first):
+                raise RuntimeError(f"{section}: the evaluator's rows differ from the first run's")
+            rows.append({"section": section, "rep": rep, "raw_steps_per_s": raw, "eval_steps_per_s": evl})
+            rows[-1]["ratio"] = evl / raw
             print(
                 f"{section:12s} rep {rep}: raw {raw:8.0f}  eval {evl:8.0f} steps/s  ratio {evl / raw:.3f}", flush=True
             )
@@ -191,6 +266,9 @@ def main(argv=None) -> pd.DataFrame:
             horizon=args.horizon,
             workers=workers if r["section"] == "all_cores" else 1,
             envs_per_worker=args.envs_per_worker or "default",
+            success_rate=success,
+            mean_steps=mean_steps,
+            commit=git_commit(),
         )
     df = pd.DataFrame(rows, columns=COLUMNS)
     write_csv_atomic(df, args.out)

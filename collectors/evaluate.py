@@ -6,14 +6,18 @@ Protocol (TAR paper, Sec. III-A): rollout ``k`` of a task runs on variation
 are computed from these rows by ``tar_rl.metrics``.
 
 Execution. The (task, rollout) pairs, in ``TASKS`` order, are cut into ``workers`` contiguous
-shards, one independent process each ('spawn' context, one torch thread). A worker runs its
+shards, one process each ('spawn' context, one torch thread; kept for the next call unless
+``keep_workers=False``). A worker runs its
 shard (interleaved over its tasks) on ``envs_per_worker`` slots of one batched TorchRL env
 (``envs.make_batched_env``: a ``GymWrapper`` around a vector of MetaWorld envs that steps only
 the running slots): the policy is called once per step on the whole batch (under
-``torch.no_grad``, in eval mode). A slot whose rollout ends gets the shard's next rollout (its env
-swapped, then reset through torchrl's partial ``_reset``), so batches stay full. Bare MetaWorld
-envs (~0.15 s to build) are reused by later rollouts of their task. The ``task_id`` entry tells
-each row of the batch its task.
+``torch.no_grad``, in eval mode). A slot whose rollout ends gets the shard's next rollout (the
+next rollout of its own task if any, keeping its env; else its env swapped; then reset through
+torchrl's partial ``_reset``), so batches stay full. Bare MetaWorld envs are reused by later
+rollouts of their task and kept in the process for the next evaluation (``clear_env_cache``);
+a new env of a task copies the task's compiled MuJoCo model (``tasks.make_env``). Workers get
+the variations from the parent when it has them, and hand back the ones they built. The
+``task_id`` entry tells each row of the batch its task.
 
 The policy is sent to the workers by pickling: it must be picklable (an ``nn.Module``-based
 ``TensorDictModule`` is; a lambda inside it is not). ``workers=1`` runs in this process.
@@ -33,6 +37,7 @@ import os
 import warnings
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pandas as pd
@@ -44,7 +49,16 @@ from tar_rl.collectors import tasks
 from tar_rl.collectors.envs import make_batched_env
 from tar_rl.io import write_csv_atomic
 
-__all__ = ["COLUMNS", "MAX_HORIZON", "ExpertPolicy", "default_envs_per_worker", "evaluate", "write_rollouts"]
+__all__ = [
+    "COLUMNS",
+    "MAX_HORIZON",
+    "ExpertPolicy",
+    "clear_env_cache",
+    "close_workers",
+    "default_envs_per_worker",
+    "evaluate",
+    "write_rollouts",
+]
 
 MAX_HORIZON = 500  # MetaWorld's own episode length: its envs raise past step 500
 ACTION_DIM = 4
@@ -148,6 +162,7 @@ def evaluate(
     envs_per_worker: int | None = None,
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
+    keep_workers: bool = True,
 ) -> pd.DataFrame:
     """Evaluate ``policy`` on ``tasks_spec`` (see ``tasks.resolve_tasks``); one row per rollout (``COLUMNS``).
 
@@ -167,6 +182,10 @@ def evaluate(
             (task, rollout) list, e.g. one share per process of a distributed job. The rows of
             the ``count`` shards, concatenated and sorted by ``task_id`` and ``variation_index``,
             are the rows of the whole evaluation (each rollout depends only on its variation).
+        keep_workers: keep the worker processes (and their envs, compiled models and variations)
+            for the next call with the same number of workers, as a training job that evaluates
+            every few thousand steps does: starting a process and importing torch takes seconds.
+            ``close_workers()`` ends them (they also end with this process).
 
     Rows are ordered by task (``TASKS`` order) then rollout, whatever the number of workers.
     """
@@ -193,12 +212,14 @@ def evaluate(
         if len(shards) == 1:
             rows = _run_shard(policy, shards[0], seed, horizon, batch, progress=bar.update)
         else:
-            import multiprocessing as mp
-
-            ctx = mp.get_context("spawn")
-            with ctx.Manager() as manager, ProcessPoolExecutor(len(shards), mp_context=ctx) as pool:
-                queue = manager.Queue()
-                futures = [pool.submit(_worker, policy, shard, seed, horizon, batch, queue) for shard in shards]
+            pool, queue = _worker_pool(len(shards))
+            while not queue.empty():  # progress left over from an interrupted call
+                queue.get()
+            try:
+                futures = [
+                    pool.submit(_worker, policy, shard, seed, horizon, batch, _known_variations(shard, seed))
+                    for shard in shards
+                ]
                 pending = set(futures)
                 while pending:
                     pending = {f for f in pending if not f.done()}
@@ -207,11 +228,60 @@ def evaluate(
                     if pending:
                         _wait_any(pending)
                 for f in futures:
-                    rows.extend(f.result())  # re-raises a worker's error
+                    shard_rows, built = f.result()  # re-raises a worker's error
+                    rows.extend(shard_rows)
+                    tasks.add_variations(built)  # the next evaluation's workers get them
+                bar.update(len(jobs) - bar.n)  # counts still in the queue's pipe are drained next call
+            except BaseException as err:
+                if not isinstance(err, Exception) or isinstance(err, BrokenProcessPool):
+                    close_workers()  # interrupted, or a worker died: start afresh next time
+                raise
+            finally:
+                if not keep_workers:
+                    close_workers()
     finally:
         bar.close()
     rows.sort(key=lambda row: (row["task_id"], row["variation_index"]))
     return pd.DataFrame(rows, columns=list(COLUMNS))
+
+
+# The worker processes kept between evaluate() calls: the executor, the progress queue (handed to
+# the workers when they start: no manager process, so nothing outlives a killed parent), and the
+# number of workers.
+_POOL: dict = {}
+_PROGRESS = None  # in a worker: the queue its progress goes to
+
+
+def _init_worker(queue) -> None:
+    global _PROGRESS
+    _PROGRESS = queue
+    torch.set_num_threads(1)
+
+
+def _worker_pool(n: int):
+    """A 'spawn' process pool of ``n`` workers and their progress queue, kept between calls."""
+    if _POOL.get("workers") != n:
+        close_workers()
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        queue = ctx.Queue()
+        _POOL.update(
+            executor=ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker, initargs=(queue,)),
+            queue=queue,
+            workers=n,
+        )
+    return _POOL["executor"], _POOL["queue"]
+
+
+def close_workers() -> None:
+    """End the evaluation worker processes kept by ``evaluate(..., keep_workers=True)``."""
+    executor, queue = _POOL.get("executor"), _POOL.get("queue")
+    _POOL.clear()
+    if executor is not None:
+        executor.shutdown(wait=True, cancel_futures=True)
+    if queue is not None:
+        queue.close()
 
 
 def _interleave(shard: list) -> list:
@@ -234,33 +304,87 @@ def _wait_any(futures) -> None:
     wait(futures, timeout=0.2, return_when=FIRST_COMPLETED)
 
 
-def _worker(policy, shard, seed, horizon, batch, queue) -> list[dict]:
-    torch.set_num_threads(1)
-    return _run_shard(policy, shard, seed, horizon, batch, progress=queue.put)
+def _variation_keys(shard, seed) -> set[tuple[str, int]]:
+    return {(task, seed + k // tasks.VARIATIONS_PER_SEED) for task, k in shard}
+
+
+def _known_variations(shard, seed) -> dict:
+    """The variations of ``shard`` this process holds: a worker receives them instead of building ``MT1``."""
+    return tasks.cached_variations(_variation_keys(shard, seed))
+
+
+def _worker(policy, shard, seed, horizon, batch, variations) -> tuple[list[dict], dict]:
+    """Run one shard in a worker process; returns its rows and the shard's variations (for the parent's cache)."""
+    tasks.add_variations(variations)
+    rows = _run_shard(policy, shard, seed, horizon, batch, progress=_PROGRESS.put)
+    return rows, _known_variations(shard, seed)
+
+
+# Idle bare envs kept in this process between evaluate() calls (a training job evaluates every few
+# thousand steps), per (env factory, task); at most _MAX_IDLE_ENVS in all. Keyed by the factory so
+# that a replaced ``tasks.make_env`` (tests inject failing envs that way) never mixes with others.
+_IDLE: dict[tuple, list] = {}
+_MAX_IDLE_ENVS = 64
+
+
+def _idle_count() -> int:
+    return sum(map(len, _IDLE.values()))
+
+
+def clear_env_cache() -> None:
+    """Close the bare MetaWorld envs this process keeps between evaluations."""
+    for envs in _IDLE.values():
+        for env in envs:
+            env.close()
+    _IDLE.clear()
 
 
 class _EnvPool:
-    """Bare MetaWorld envs of a worker, built once per task and reused by later rollouts of the task."""
+    """Bare MetaWorld envs of a shard: reused by later rollouts of their task, kept for the next call.
+
+    An env is taken from the shard's free envs of its task, else from the process's idle envs
+    (``_IDLE``), else built (``tasks.make_env``: a copy of the task's compiled model after the first).
+    Reusing an env is safe: ``set_task`` + ``reset`` put it in the state a fresh env starts in
+    (tested). An env whose rollout failed is closed, never reused.
+    """
 
     def __init__(self, jobs):
+        self._factory = tasks.make_env
         self._free: dict[str, list] = {}
         self._left = collections.Counter(task for task, _ in jobs)  # rollouts not yet started, per task
+        self.built = 0
 
     def acquire(self, task: str):
         self._left[task] -= 1
         free = self._free.setdefault(task, [])
-        return free.pop() if free else tasks.make_env(task)
+        if free:
+            return free.pop()
+        idle = _IDLE.get((self._factory, task))
+        if idle:
+            return idle.pop()
+        self.built += 1
+        return self._factory(task)
+
+    def keep(self, task: str) -> None:
+        """A slot keeps its env of ``task`` for the task's next rollout."""
+        self._left[task] -= 1
 
     def release(self, task: str, env) -> None:
         if self._left[task] > 0:
             self._free[task].append(env)
         else:  # no rollout of this task left in the shard
+            self._retire(task, env)
+
+    def _retire(self, task: str, env) -> None:
+        if _idle_count() < _MAX_IDLE_ENVS:
+            _IDLE.setdefault((self._factory, task), []).append(env)
+        else:
             env.close()
 
     def close(self) -> None:
-        for envs in self._free.values():
+        for task, envs in self._free.items():
             for env in envs:
-                env.close()
+                self._retire(task, env)
         self._free.clear()
 
 
@@ -291,17 +415,44 @@ def _row(task, k, seed, horizon, success, steps, total, failure) -> dict:
     }
 
 
+class _Pending:
+    """The rollouts of a shard not yet started: the next one in shard order, or the next one of a task."""
+
+    def __init__(self, shard):
+        self._order = collections.deque(shard)
+        self._by_task: dict[str, collections.deque] = {}
+        for task, k in shard:
+            self._by_task.setdefault(task, collections.deque()).append(k)
+        self._left = len(shard)
+
+    def __bool__(self) -> bool:
+        return self._left > 0
+
+    def has(self, task: str) -> bool:
+        return bool(self._by_task.get(task))
+
+    def pop(self, task: str | None = None) -> tuple[str, int]:
+        """The next rollout (of ``task`` if given) as ``(task, k)``; rollouts of a task start in order of ``k``."""
+        if task is None:
+            while not self._by_task[self._order[0][0]]:  # its task's rollouts were all taken already
+                self._order.popleft()
+            task = self._order.popleft()[0]
+        self._left -= 1
+        return task, self._by_task[task].popleft()
+
+
 def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> list[dict]:
     """Run the rollouts ``shard`` ((task, k) pairs) on ``n`` batched env slots.
 
     Each step, the policy is called once on the whole batch and the running slots are stepped.
-    A slot whose rollout ends (first success, failure, horizon) gets the shard's next rollout:
-    its env is swapped for one of the new task, ``set_task`` on the new variation, and reset
-    through torchrl's partial reset (a ``_reset`` mask), so the batch stays full until the shard
-    runs out instead of waiting for its slowest rollout.
+    A slot whose rollout ends (first success, failure, horizon) gets the shard's next rollout of
+    the same task if there is one (its env stays, ``set_task`` on the new variation), else the
+    shard's next rollout (its env swapped for one of the new task); then it is reset through
+    torchrl's partial reset (a ``_reset`` mask), so the batch stays full until the shard runs out
+    instead of waiting for its slowest rollout. Which slot runs a rollout never changes its row.
     """
-    pending = collections.deque(shard)
-    slot = [pending.popleft() for _ in range(n)]
+    pending = _Pending(shard)
+    slot = [pending.pop() for _ in range(n)]
     bare = []
     for task, k in slot:
         env = pool.acquire(task)
@@ -333,12 +484,21 @@ def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> lis
             success = bool(hit[i]) and not failure
             rows.append(_row(task, k, seed, horizon, success, count[i] if success else horizon, returns[i], failure))
             progress(1)
+            if pending and not failure and pending.has(task):
+                # The slot's env stays: a new variation of the same task, no env swapped.
+                slot[i] = task, k = pending.pop(task)
+                pool.keep(task)
+                vec.envs[i].set_task(tasks.variation(task, seed, k))
+                vec.replace(i, vec.envs[i], tasks.task_index(task))
+                count[i], returns[i] = 0, 0.0
+                restart[i] = True
+                continue
             if failure:  # its simulation state is not trusted for another rollout
                 vec.envs[i].close()
-            else:
+            elif pending:  # (else the env stays in its slot until the end)
                 pool.release(task, vec.envs[i])
             if pending:
-                slot[i] = task, k = pending.popleft()
+                slot[i] = task, k = pending.pop()
                 new = pool.acquire(task)
                 new.set_task(tasks.variation(task, seed, k))
                 vec.replace(i, new, tasks.task_index(task))
@@ -351,6 +511,9 @@ def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> lis
             td = env.reset(nxt)
         else:
             td = nxt
+    for i, (task, _) in enumerate(slot):
+        if not vec.failures[i]:  # (a failed slot's env was closed above)
+            pool.release(task, vec.envs[i])
     return rows
 
 

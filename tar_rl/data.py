@@ -499,6 +499,30 @@ def _check_storage_files(storage_dir: Path, metadata: dict, total: int) -> None:
 # -- The dataset ------------------------------------------------------------------------------
 
 
+class _OneGatherSliceSampler(SliceSampler):
+    """``SliceSampler`` without its second read of the storage (used by :class:`SegmentSampler` only).
+
+    torchrl 0.14's ``SliceSampler._finalize_index`` gathers every sampled entry of the storage
+    (``storage[index]``) to look for a stored ``is_init`` to mark slice starts in, and the buffer
+    then gathers them again for the batch. With ``truncated_key=None`` and ``init_key=None``
+    that first gather is read by nothing: this returns the same index and mask without it
+    (tests/test_data.py checks the batches equal those of the plain ``SliceSampler``).
+    """
+
+    def _finalize_index(self, *, index, num_slices, seq_length, target_seq_length, mask_flat, storage):
+        if self.truncated_key is not None or self.init_key is not None:
+            return super()._finalize_index(
+                index=index,
+                num_slices=num_slices,
+                seq_length=seq_length,
+                target_seq_length=target_seq_length,
+                mask_flat=mask_flat,
+                storage=storage,
+            )
+        info = {} if mask_flat is None else {("collector", "mask"): mask_flat}
+        return index.to(torch.long).unbind(-1), info
+
+
 class SegmentSampler:
     """Draws ``[B, L]`` segments of the dataset's episodes with TorchRL's ``SliceSampler``.
 
@@ -512,7 +536,9 @@ class SegmentSampler:
 
     The buffer's ``TensorStorage`` holds plain-tensor views of the dataset's memory maps (zero
     copy): indexing a ``MemoryMappedTensor`` goes through a Python override per entry, and
-    ``SliceSampler`` indexes the storage twice per batch, which made sampling ~40% slower.
+    ``SliceSampler`` indexes the storage twice per batch, which made sampling ~40% slower; the
+    second read (a look for a stored ``is_init``, which the dataset does not have) is skipped
+    (``_OneGatherSliceSampler``).
 
     Args:
         storage: the dataset's ``LazyMemmapStorage``.
@@ -545,13 +571,14 @@ class SegmentSampler:
         views = stored.apply(lambda x: x.as_subclass(torch.Tensor))
         self.buffer = TensorDictReplayBuffer(
             storage=TensorStorage(views),
-            sampler=SliceSampler(
+            sampler=_OneGatherSliceSampler(
                 slice_len=self.slice_len,
                 traj_key="episode",
                 strict_length=False,
                 pad_output=True,
                 cache_values=True,
                 truncated_key=None,
+                init_key=None,  # the dataset stores no is_init: nothing to mark
             ),
             batch_size=self.batch_segments * self.slice_len,
             generator=generator,

@@ -366,6 +366,31 @@ def test_segments_generator_reproducible(built):
     assert torch.equal(a["step"], b["step"]) and torch.equal(a["episode"], b["episode"])
 
 
+def test_segments_equal_torchrls_slice_sampler(built):
+    # The one-gather sampler must draw exactly what torchrl's own SliceSampler draws with the same
+    # settings and generator state (it only skips a read of the storage that nothing uses).
+    from torchrl.data import SliceSampler, TensorDictReplayBuffer
+
+    _, ds = built
+    ours = ds.segments(32, 16, generator=torch.Generator().manual_seed(5))
+    reference = TensorDictReplayBuffer(
+        storage=ours.buffer.storage,
+        sampler=SliceSampler(
+            slice_len=16, traj_key="episode", strict_length=False, pad_output=True, truncated_key=None
+        ),
+        batch_size=32 * 16,
+        generator=torch.Generator().manual_seed(5),
+    )
+    for _ in range(3):
+        got = ours.sample()
+        expected = reference.sample().reshape(32, 16)
+        if ("collector", "mask") not in expected.keys(True):  # torchrl writes it only when a slice is padded
+            expected.set(("collector", "mask"), torch.ones(32, 16, dtype=torch.bool))
+        assert set(got.keys(True, True)) == set(expected.keys(True, True))
+        for key in expected.keys(True, True):
+            assert torch.equal(got.get(key), expected.get(key)), key
+
+
 def test_segments_bad_arguments(built):
     _, ds = built
     with pytest.raises(ValueError, match="slice_len"):

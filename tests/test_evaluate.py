@@ -280,11 +280,13 @@ def test_bench_eval_quick_writes_csv(tmp_path):
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     out = tmp_path / "eval.csv"
-    bench.main(["--quick", "--sections", "one_process", "--out", str(out)])
+    bench.main(["--quick", "--sections", "one_process", "--out", str(out), "--cache", str(tmp_path / "cache")])
     df = pd.read_csv(out)
     assert list(df.columns) == bench.COLUMNS
     assert list(df["rep"].astype(str)) == ["0", "median"]
     assert (df["ratio"] > 0).all() and (df["raw_steps_per_s"] > 0).all()
+    assert df["success_rate"].between(0, 1).all() and (df["mean_steps"] >= 1).all()
+    assert any((tmp_path / "cache").glob("mlp-*.pt"))  # the trained policy is cached
 
 
 @pytest.mark.parametrize(
@@ -306,3 +308,50 @@ def test_progress_bar_counts_rollouts(capsys):
 def test_a_worker_error_reaches_the_caller():
     with pytest.raises(ValueError, match=r"non-finite actions for drawer-close-v3 \(rollout 0\) at step 2"):
         evaluate(ConstPolicy(0.0, nan_at_step=2), ["reach", "drawer-close"], 1, horizon=5, workers=2, progress=False)
+
+
+def plain_const_rollout(task, k, value, horizon):
+    """A constant action on a freshly built env: (success, steps, return) as the evaluator counts them."""
+    env = tasks.make_env(task)
+    env.set_task(tasks.variation(task, 1000, k))
+    env.reset()
+    total = 0.0
+    for t in range(1, horizon + 1):
+        _, reward, _, _, info = env.step(np.full(4, value, dtype=np.float32))
+        total += float(reward)
+        if info["success"]:
+            return True, t, total
+    return False, horizon, total
+
+
+def test_reused_envs_give_the_rows_of_fresh_envs():
+    # One slot: every rollout after the first refills it, keeping the env of its task (same-task
+    # refill) or swapping it; the second call reuses the envs the first one kept in the process.
+    ev.clear_env_cache()
+    names = ["reach-v3", "drawer-close-v3"]
+    runs = [
+        evaluate(ConstPolicy(0.7), names, rollouts_per_task=3, horizon=40, workers=1, envs_per_worker=1, progress=False)
+        for _ in range(2)
+    ]
+    assert ev._idle_count() > 0  # envs were kept for the next call
+    pd.testing.assert_frame_equal(runs[0], runs[1])
+    for row in runs[0].itertuples():
+        success, steps, total = plain_const_rollout(row.task, row.variation_index, 0.7, 40)
+        assert (row.success, row.steps, row[tuple(runs[0].columns).index("return") + 1]) == (success, steps, total)
+    ev.clear_env_cache()
+    assert ev._idle_count() == 0
+
+
+@pytest.mark.slow
+def test_kept_workers_are_reused_and_give_the_same_rows(expert_rows):
+    ev.close_workers()
+    first = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
+    executor = ev._POOL["executor"]
+    with pytest.raises(ValueError, match="non-finite actions"):  # a worker's error leaves the pool usable
+        evaluate(ConstPolicy(0.0, nan_at_step=2), EASY, 1, horizon=5, workers=2, progress=False)
+    second = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
+    assert ev._POOL["executor"] is executor
+    pd.testing.assert_frame_equal(first, expert_rows)
+    pd.testing.assert_frame_equal(second, expert_rows)
+    evaluate(ConstPolicy(0.0), "reach", 2, horizon=3, workers=2, progress=False, keep_workers=False)
+    assert ev._POOL == {}

@@ -213,6 +213,7 @@ def test_variation_seed_and_index_arithmetic(monkeypatch):
             self.train_tasks = [(task, seed, i) for i in range(50)]
 
     monkeypatch.setattr(tasks, "_benchmark", Fake)
+    monkeypatch.setattr(tasks, "_VARIATIONS", {})  # nothing cached from real MT1 objects
     # Episode j uses variation j % 50 of seed base + j // 50.
     assert variation("reach-v3", 1000, 0) == ("reach-v3", 1000, 0)
     assert variation("reach-v3", 1000, 49) == ("reach-v3", 1000, 49)
@@ -257,3 +258,36 @@ def test_make_env_shows_the_variation_goal(reach_variations):
     obs1, _ = env.reset()
     assert not np.allclose(obs1[36:39], goal)
     env.close()
+
+
+def test_make_env_copies_the_compiled_model_and_steps_identically(reach_variations):
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    first, second = tasks.make_env("reach-v3"), tasks.make_env("reach-v3")  # the second copies a compiled model
+    fresh = ALL_V3_ENVIRONMENTS["reach-v3"]()  # MetaWorld's own construction, XML compiled again
+    assert first.model is not second.model and first.data is not second.data
+    actions = np.random.default_rng(0).uniform(-1, 1, (60, 4)).astype(np.float32)
+    trajectories = []
+    for env in (first, second, fresh):
+        env.set_task(reach_variations[1])
+        obs, _ = env.reset()
+        steps = [obs] + [env.step(a)[0] for a in actions]
+        trajectories.append(np.stack(steps))
+        env.close()
+    np.testing.assert_array_equal(trajectories[1], trajectories[2])
+    np.testing.assert_array_equal(trajectories[0], trajectories[2])
+
+
+def test_variations_handed_to_another_process_are_used(monkeypatch):
+    monkeypatch.setattr(tasks, "_VARIATIONS", {})
+
+    def no_mt1(task, seed):
+        raise AssertionError("MT1 must not be built for received variations")
+
+    monkeypatch.setattr(tasks, "_benchmark", no_mt1)
+    received = {("reach-v3", 7): tuple(("v", i) for i in range(50))}
+    tasks.add_variations(received)
+    assert variation("reach-v3", 7, 3) == ("v", 3)
+    assert tasks.cached_variations([("reach-v3", 7), ("reach-v3", 8)]) == received  # only what it holds
+    with pytest.raises(ValueError, match="must be 50 tasks"):
+        tasks.add_variations({("push-v3", 1): (1, 2)})
