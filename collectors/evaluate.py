@@ -163,6 +163,7 @@ def evaluate(
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
     keep_workers: bool = True,
+    image_size: int = 0,
 ) -> pd.DataFrame:
     """Evaluate ``policy`` on ``tasks_spec`` (see ``tasks.resolve_tasks``); one row per rollout (``COLUMNS``).
 
@@ -186,6 +187,10 @@ def evaluate(
             for the next call with the same number of workers, as a training job that evaluates
             every few thousand steps does: starting a process and importing torch takes seconds.
             ``close_workers()`` ends them (they also end with this process).
+        image_size: ``S > 0``: the policy also reads ``pixels`` (``[N, 3, S, S]`` uint8), the
+            camera image of each slot's current observation (:mod:`tar_rl.collectors.render`).
+            Rendering runs in worker processes (at least one) started with ``MUJOCO_GL=egl``
+            unless it is set.
 
     Rows are ordered by task (``TASKS`` order) then rollout, whatever the number of workers.
     """
@@ -203,13 +208,19 @@ def evaluate(
     batch = envs_per_worker or default_envs_per_worker(math.ceil(len(jobs) / workers), horizon)
     bounds = np.linspace(0, len(jobs), workers + 1).round().astype(int)
     shards = [_interleave(jobs[a:b]) for a, b in itertools.pairwise(bounds) if b > a]
+    if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size < 0:
+        raise ValueError(f"image_size must be a non-negative integer (0: no images), got {image_size!r}")
+    if image_size:
+        from tar_rl.collectors.render import headless_gl
+
+        headless_gl()  # before the worker processes start: MuJoCo reads it when imported
 
     from tqdm import tqdm
 
     bar = tqdm(total=len(jobs), desc="evaluate", unit="rollout", disable=not progress)
     rows: list[dict] = []
     try:
-        if len(shards) == 1:
+        if len(shards) == 1 and not image_size:
             rows = _run_shard(policy, shards[0], seed, horizon, batch, progress=bar.update)
         else:
             pool, queue = _worker_pool(len(shards))
@@ -217,7 +228,9 @@ def evaluate(
                 queue.get()
             try:
                 futures = [
-                    pool.submit(_worker, policy, shard, seed, horizon, batch, _known_variations(shard, seed))
+                    pool.submit(
+                        _worker, policy, shard, seed, horizon, batch, _known_variations(shard, seed), image_size
+                    )
                     for shard in shards
                 ]
                 pending = set(futures)
@@ -259,8 +272,12 @@ def _init_worker(queue) -> None:
 
 
 def _worker_pool(n: int):
-    """A 'spawn' process pool of ``n`` workers and their progress queue, kept between calls."""
-    if _POOL.get("workers") != n:
+    """A 'spawn' process pool of ``n`` workers and their progress queue, kept between calls.
+
+    A pool started under another ``MUJOCO_GL`` (e.g. before image observations asked for EGL) is
+    replaced: MuJoCo reads the variable once, when a worker imports it.
+    """
+    if _POOL.get("workers") != n or _POOL.get("gl") != os.environ.get("MUJOCO_GL"):
         close_workers()
         import multiprocessing as mp
 
@@ -270,6 +287,7 @@ def _worker_pool(n: int):
             executor=ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker, initargs=(queue,)),
             queue=queue,
             workers=n,
+            gl=os.environ.get("MUJOCO_GL"),
         )
     return _POOL["executor"], _POOL["queue"]
 
@@ -313,10 +331,10 @@ def _known_variations(shard, seed) -> dict:
     return tasks.cached_variations(_variation_keys(shard, seed))
 
 
-def _worker(policy, shard, seed, horizon, batch, variations) -> tuple[list[dict], dict]:
+def _worker(policy, shard, seed, horizon, batch, variations, image_size=0) -> tuple[list[dict], dict]:
     """Run one shard in a worker process; returns its rows and the shard's variations (for the parent's cache)."""
     tasks.add_variations(variations)
-    rows = _run_shard(policy, shard, seed, horizon, batch, progress=_PROGRESS.put)
+    rows = _run_shard(policy, shard, seed, horizon, batch, progress=_PROGRESS.put, image_size=image_size)
     return rows, _known_variations(shard, seed)
 
 
@@ -388,15 +406,22 @@ class _EnvPool:
         self._free.clear()
 
 
-def _run_shard(policy, shard, seed, horizon, batch, progress) -> list[dict]:
+def _run_shard(policy, shard, seed, horizon, batch, progress, image_size=0) -> list[dict]:
     was_training = policy.training
     policy.eval()
     pool = _EnvPool(shard)
+    render = None
+    if image_size:
+        from tar_rl.collectors.render import PixelRenderer
+
+        render = PixelRenderer(image_size)
     try:
         with torch.no_grad():
-            return _run_slots(policy, shard, seed, horizon, min(batch, len(shard)), pool, progress)
+            return _run_slots(policy, shard, seed, horizon, min(batch, len(shard)), pool, progress, render)
     finally:
         pool.close()
+        if render is not None:
+            render.close()
         policy.train(was_training)
 
 
@@ -441,7 +466,7 @@ class _Pending:
         return task, self._by_task[task].popleft()
 
 
-def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> list[dict]:
+def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress, render=None) -> list[dict]:
     """Run the rollouts ``shard`` ((task, k) pairs) on ``n`` batched env slots.
 
     Each step, the policy is called once on the whole batch and the running slots are stepped.
@@ -450,6 +475,7 @@ def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> lis
     shard's next rollout (its env swapped for one of the new task); then it is reset through
     torchrl's partial reset (a ``_reset`` mask), so the batch stays full until the shard runs out
     instead of waiting for its slowest rollout. Which slot runs a rollout never changes its row.
+    With ``render`` the policy also gets ``pixels``, the image of each running slot's observation.
     """
     pending = _Pending(shard)
     slot = [pending.pop() for _ in range(n)]
@@ -465,6 +491,8 @@ def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> lis
     rows = []
     td = env.reset()
     while running.any():
+        if render is not None:
+            td.set("pixels", _pixels(render, vec.envs, running))
         td = policy(td)
         _check_action(td.get("action", None), slot, running, count + 1)
         vec.active = running.copy()
@@ -515,6 +543,14 @@ def _run_slots(policy, shard, seed, horizon, n, pool: _EnvPool, progress) -> lis
         if not vec.failures[i]:  # (a failed slot's env was closed above)
             pool.release(task, vec.envs[i])
     return rows
+
+
+def _pixels(render, envs, running) -> torch.Tensor:
+    """``[N, 3, S, S]`` uint8: the running slots' images, zeros for the others (their envs may be closed)."""
+    out = np.zeros((len(envs), 3, render.size, render.size), np.uint8)
+    for i in np.flatnonzero(running):
+        out[i] = render(envs[i])
+    return torch.from_numpy(out)
 
 
 def _check_action(action, slot, running, step) -> None:

@@ -50,36 +50,38 @@ class PixelRenderer:
         if isinstance(size, bool) or not isinstance(size, int) or size < 8:
             raise ValueError(f"the image size must be an integer >= 8 pixels, got {size!r}")
         self.size, self.camera = size, camera
-        self._renderer = None
-        self._model = None
+        self._renderers: dict[int, tuple] = {}  # id(model) -> (model, mujoco.Renderer): one GL context per model
 
     def __call__(self, env) -> np.ndarray:
-        import mujoco
-
         env = getattr(env, "unwrapped", env)
-        if self._renderer is None or self._model is not env.model:
-            self.close()
-            env.model.vis.quality.shadowsize = 0
-            try:
-                self._renderer = mujoco.Renderer(env.model, self.size, self.size)
-            except Exception as err:
-                backend = os.environ.get("MUJOCO_GL", "")
-                raise RenderError(
-                    f"MuJoCo cannot render off-screen here (MUJOCO_GL={backend!r} when MuJoCo was imported: "
-                    f"{type(err).__name__}: {err}). Image observations need MUJOCO_GL=egl (or osmesa) set before "
-                    "MuJoCo is imported, e.g. `MUJOCO_GL=egl tar-rl train ...`, and libEGL (Mesa on a CPU)."
-                ) from err
-            self._model = env.model
-        self._renderer.update_scene(env.data, camera=self.camera)
-        image = self._renderer.render()  # [S, S, 3] uint8
+        entry = self._renderers.get(id(env.model))
+        if entry is None or entry[0] is not env.model:
+            entry = self._renderers[id(env.model)] = (env.model, self._new_renderer(env.model))
+        renderer = entry[1]
+        renderer.update_scene(env.data, camera=self.camera)
+        image = renderer.render()  # [S, S, 3] uint8
         if self.camera == CAMERA:
             image = image[::-1, ::-1]
         return np.ascontiguousarray(image.transpose(2, 0, 1))
 
+    def _new_renderer(self, model):
+        import mujoco
+
+        model.vis.quality.shadowsize = 0
+        try:
+            return mujoco.Renderer(model, self.size, self.size)
+        except Exception as err:
+            backend = os.environ.get("MUJOCO_GL", "")
+            raise RenderError(
+                f"MuJoCo cannot render off-screen here (MUJOCO_GL={backend!r} when MuJoCo was imported: "
+                f"{type(err).__name__}: {err}). Image observations need MUJOCO_GL=egl (or osmesa) set before "
+                "MuJoCo is imported, e.g. `MUJOCO_GL=egl tar-rl train ...`, and libEGL (Mesa on a CPU)."
+            ) from err
+
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-        self._renderer = self._model = None
+        for _, renderer in self._renderers.values():
+            renderer.close()
+        self._renderers.clear()
 
     def __getstate__(self):
-        return {"size": self.size, "camera": self.camera, "_renderer": None, "_model": None}
+        return {"size": self.size, "camera": self.camera, "_renderers": {}}

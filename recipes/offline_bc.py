@@ -298,6 +298,7 @@ def make_evaluator(
     """A function running the evaluator collectors on a policy, with ``eval``'s settings.
 
     ``shard=(rank, world)`` runs that share of the rollouts on this process's share of the cores.
+    A policy reading ``pixels`` gets camera images of ``data.image_size``.
     """
     ev = config["eval"]
     workers = ev["workers"]
@@ -314,6 +315,7 @@ def make_evaluator(
             workers=workers,
             progress=progress,
             shard=shard,
+            image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
         )
 
     return run

@@ -13,12 +13,18 @@ import subprocess
 import sys
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
+from recipe_helpers import tiny
+from tensordict.nn import TensorDictModuleBase
 
+from tar_rl.collectors.evaluate import evaluate
 from tar_rl.data import build_dataset
 from tar_rl.policies import DataInfo, build_policy
 from tar_rl.policies.vision import ConvEncoder
+from tar_rl.recipes.offline_bc import policy_from_checkpoint, train
+from tar_rl.runs import load_checkpoint
 
 S = 32
 
@@ -91,3 +97,52 @@ def test_image_policy_needs_a_dataset_with_images():
         build_policy({"name": "mlp", "observation": "image"}, DataInfo())
     with pytest.raises(ValueError, match=r"policy\.observation"):
         build_policy({"name": "mlp", "observation": "depth"}, DataInfo())
+
+
+class _PixelProbe(TensorDictModuleBase):
+    """Zero actions (reach never succeeds with them); saves the pixels of its first call to ``path``."""
+
+    in_keys = ["observation", "pixels"]
+    out_keys = ["action"]
+
+    def __init__(self, path):
+        super().__init__()
+        self.path = str(path)
+
+    def forward(self, td):
+        pixels = td["pixels"]
+        assert pixels.dtype == torch.uint8 and pixels.shape == (td.batch_size[0], 3, S, S)
+        if not os.path.exists(self.path):
+            np.save(self.path, pixels.numpy())
+        td.set("action", torch.zeros(td.batch_size[0], 4))
+        return td
+
+
+@pytest.mark.slow
+def test_evaluation_gives_the_policy_the_image_of_each_slot(image_dataset, tmp_path):
+    # Rollout k of seed 0 starts in the variation of demonstration k: the same first image.
+    path = tmp_path / "seen.npy"
+    rows = evaluate(_PixelProbe(path), ["reach"], rollouts_per_task=2, seed=0, horizon=3, workers=1, image_size=S)
+    assert len(rows) == 2 and not rows.success.any()
+    seen = np.load(path)
+    np.testing.assert_array_equal(seen[0], image_dataset.data["pixels"][0].numpy())
+    assert not np.array_equal(seen[0], seen[1])  # another variation: the goal and arm start elsewhere
+
+
+@pytest.mark.slow
+def test_a_tiny_image_job_trains_and_evaluates_through_the_recipe(tmp_path):
+    config = tiny(
+        tmp_path,
+        tmp_path / "datasets",
+        "policy.observation=image",
+        f"data.image_size={S}",
+        "optim.steps=6",
+        "logging.every=3",
+        "eval.horizon=5",
+    )
+    run_dir = train(config)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["finished"] and summary["steps"] == 6
+    rollouts = pd.read_csv(run_dir / "eval_rollouts.csv")
+    assert len(rollouts) == 1 and rollouts.failure.isna().all()
+    assert "pixels" in policy_from_checkpoint(load_checkpoint(run_dir)).in_keys
