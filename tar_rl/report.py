@@ -1540,7 +1540,7 @@ def plot_weight_phases(
 
     height = 2.6 * len(tasks) + 1.2
     fig = _new_figure(8.0, height)
-    fig.subplots_adjust(left=0.1, right=0.9, top=1 - 0.5 / height, bottom=0.75 / height, hspace=0.55)
+    fig.subplots_adjust(left=0.12, right=0.9, top=1 - 0.5 / height, bottom=0.75 / height, hspace=0.55)
     axes = fig.subplots(len(tasks), 1, squeeze=False)[:, 0]
     for ax, task in zip(axes, tasks):
         tdf = df[df["task"] == task]
