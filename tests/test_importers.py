@@ -309,3 +309,17 @@ def test_info_on_a_metaworld_dataset(data_root):
     assert info["per_task"] == {"reach-v3": {"task_id": ds.metadata["task_ids"]["reach-v3"], "episodes": 1, "steps": n}}
     assert info["keys"]["observation"] == {"shape": [39], "dtype": "float32"}
     np.testing.assert_array_equal(info["action_min"], ds.data["action"].numpy().min(0))
+
+
+def test_failure_while_writing_leaves_no_dataset(h5file, tmp_path, monkeypatch):
+    import tar_rl.data
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(tar_rl.data, "write_json_atomic", fail)  # the metadata, written last
+    path, _ = h5file
+    out = tmp_path / "out"
+    with pytest.raises(OSError, match="disk full"):
+        import_robomimic(path, KEYS, out=out, verbose=False)
+    assert list(out.iterdir()) == []  # neither the dataset folder nor its temporary sibling
