@@ -7,6 +7,11 @@ with ``rb.dumps``; ``rb.loads`` reads it back in place, without copying). ``meta
 beside it describes the content. The folder name is a hash of everything that determines the
 content, so a second ``build_dataset`` with the same settings loads the existing folder.
 
+Datasets from other sources (:mod:`tar_rl.importers`, e.g. robomimic/LIBERO HDF5 files) use the same
+layout and keys: :func:`steps_tensordict` turns episode-contiguous step arrays into the stored
+``[N]`` TensorDict and :func:`write_dataset` writes a folder crash-safely; ``load_dataset`` opens
+any of them.
+
 Layout of one dataset folder::
 
     metaworld-demos-<key>/
