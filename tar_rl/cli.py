@@ -6,6 +6,8 @@ Sub-commands:
   configured with Hydra overrides such as ``objective=uniform`` or ``objective.gamma=2``.
 * ``tar-rl eval CHECKPOINT``: evaluate a saved policy on MetaWorld.
 * ``tar-rl report RUN_DIR...``: compare finished runs (tables and figures).
+* ``tar-rl data import robomimic FILE... --obs-keys a,b,c``: robomimic/LIBERO HDF5 demonstrations into a
+  dataset folder; ``tar-rl data info PATH``: a dataset folder's episodes, steps, entries and tasks.
 * ``tar-rl demo``: a short demonstration of the objective on toy data.
 """
 
@@ -31,6 +33,25 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--workers", type=int, help="evaluation processes (default: every core)")
     ev.add_argument("--out", help="CSV of the rollouts (default: eval-<seed>.csv beside the checkpoint)")
     ev.add_argument("--no-progress", action="store_true", help="no progress bar")
+    data = commands.add_parser("data", help="import demonstrations, describe a dataset folder")
+    data_commands = data.add_subparsers(dest="data_command", required=True)
+    imp = data_commands.add_parser("import", help="import demonstrations from another format")
+    formats = imp.add_subparsers(dest="format", required=True, metavar="FORMAT")
+    rm = formats.add_parser("robomimic", help="robomimic / LIBERO HDF5 files (low-dimensional observations)")
+    rm.add_argument("files", nargs="+", metavar="FILE", help="HDF5 files, one task per file")
+    rm.add_argument(
+        "--obs-keys",
+        required=True,
+        help="obs/<key> entries to concatenate, in order (e.g. robot0_eef_pos,robot0_eef_quat,object)",
+    )
+    rm.add_argument("--filter", help="import only the demos of mask/<FILTER> (e.g. train); default: every demo")
+    rm.add_argument("--out", default="data", help="folder holding datasets (default: data)")
+    rm.add_argument("--chunk-horizon", type=int, default=8, help="H of action_chunk (default 8)")
+    rm.add_argument("--history", type=int, default=2, help="K of observation_history (default 2)")
+    rm.add_argument("--clip", action="store_true", help="clip actions outside [-1, 1] instead of refusing them")
+    info = data_commands.add_parser("info", help="episodes, steps, entries, action range and tasks of a dataset")
+    info.add_argument("path", help="a dataset folder (holding metadata.json and buffer/)")
+    info.add_argument("--json", action="store_true", help="print JSON instead of text")
     demo = commands.add_parser("demo", help="train a small policy with uniform and TAR weighting on toy data")
     demo.add_argument("--steps", type=int, default=600, help="optimiser steps per weighting (default 600)")
     demo.add_argument(
@@ -74,10 +95,42 @@ def main(argv: list[str] | None = None) -> int:
         except (ConfigError, FileNotFoundError, ValueError) as err:
             raise SystemExit(f"tar-rl eval: {err}") from None
         return 0
+    if args.command == "data":
+        return _data_command(args)
     if args.command == "demo":
         from tar_rl.demo import DemoConfig, run
 
         if args.steps < 10:
             raise SystemExit(f"tar-rl demo: --steps must be at least 10, got {args.steps}")
         run(DemoConfig(steps=args.steps, weightings=tuple(args.weightings), seed=args.seed))
+    return 0
+
+
+def _data_command(args: argparse.Namespace) -> int:
+    if args.data_command == "import":
+        from tar_rl.importers import DemoImportError, import_robomimic
+
+        try:
+            import_robomimic(
+                args.files,
+                args.obs_keys,
+                filter_key=args.filter,
+                out=args.out,
+                chunk_horizon=args.chunk_horizon,
+                history=args.history,
+                clip=args.clip,
+            )
+        except DemoImportError as err:
+            raise SystemExit(f"tar-rl data import robomimic: {err}") from None
+        return 0
+    import json
+
+    from tar_rl.data import DatasetError
+    from tar_rl.importers import dataset_info, format_info
+
+    try:
+        info = dataset_info(args.path)
+    except DatasetError as err:
+        raise SystemExit(f"tar-rl data info: {err}") from None
+    print(json.dumps(info, indent=2) if args.json else format_info(info))
     return 0

@@ -7,6 +7,11 @@ with ``rb.dumps``; ``rb.loads`` reads it back in place, without copying). ``meta
 beside it describes the content. The folder name is a hash of everything that determines the
 content, so a second ``build_dataset`` with the same settings loads the existing folder.
 
+Datasets from other sources (:mod:`tar_rl.importers`, e.g. robomimic/LIBERO HDF5 files) use the same
+layout and keys: :func:`steps_tensordict` turns episode-contiguous step arrays into the stored
+``[N]`` TensorDict and :func:`write_dataset` writes a folder crash-safely; ``load_dataset`` opens
+any of them.
+
 Layout of one dataset folder::
 
     metaworld-demos-<key>/
@@ -68,6 +73,8 @@ __all__ = [
     "build_dataset",
     "cache_key",
     "load_dataset",
+    "steps_tensordict",
+    "write_dataset",
 ]
 
 logger = logging.getLogger(__name__)
@@ -148,6 +155,77 @@ def _history(observation: np.ndarray, lengths: np.ndarray, window: int) -> tuple
     return observation[rows], valid
 
 
+def steps_tensordict(
+    *,
+    observation: np.ndarray,
+    action: np.ndarray,
+    action_raw: np.ndarray,
+    next_observation: np.ndarray,
+    reward: np.ndarray,
+    terminated: np.ndarray,
+    truncated: np.ndarray,
+    lengths: np.ndarray,
+    task_id: np.ndarray,
+    horizon: int,
+    history: int,
+    pixels: np.ndarray | None = None,
+) -> TensorDict:
+    """One flat ``[N]`` TensorDict in the dataset format from episode-contiguous step arrays.
+
+    Episodes are numbered ``0 .. E-1`` in storage order; ``step``, the action chunks and the
+    observation windows are derived from ``lengths``.
+
+    Args:
+        observation: ``[N, D]`` float32.
+        action: ``[N, A]`` float32, the supervision target.
+        action_raw: ``[N, A]`` float32, the action before any clipping.
+        next_observation: ``[N, D]`` float32.
+        reward: ``[N]`` float32.
+        terminated: ``[N]`` bool.
+        truncated: ``[N]`` bool.
+        lengths: ``[E]`` int, steps per episode (sum ``N``).
+        task_id: ``[N]`` int64.
+        horizon: ``H`` of ``action_chunk``.
+        history: ``K`` of ``observation_history``.
+        pixels: optional ``[N, 3, S, S]`` uint8.
+
+    Returns:
+        The ``[N]`` TensorDict with the keys listed in this module's docstring.
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    n = int(lengths.sum())
+    episode = np.repeat(np.arange(len(lengths), dtype=np.int64), lengths)
+    step = np.arange(n, dtype=np.int64) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    chunk, chunk_valid = _chunks(action, lengths, horizon)
+    past, past_valid = _history(observation, lengths, history)
+    terminated = np.asarray(terminated, dtype=bool)[:, None]
+    truncated = np.asarray(truncated, dtype=bool)[:, None]
+    t = torch.from_numpy
+    return TensorDict(
+        {
+            "observation": t(observation),
+            "action": t(action),
+            "action_raw": t(action_raw),
+            "episode": t(episode),
+            "task_id": t(np.asarray(task_id, dtype=np.int64)),
+            "step": t(step),
+            "action_chunk": t(np.ascontiguousarray(chunk)),
+            "action_chunk_valid": t(chunk_valid),
+            "observation_history": t(np.ascontiguousarray(past)),
+            "observation_history_valid": t(past_valid),
+            **({"pixels": t(pixels)} if pixels is not None else {}),
+            "next": {
+                "observation": t(next_observation),
+                "reward": t(np.asarray(reward)[:, None]),
+                "done": t(terminated | truncated),
+                "terminated": t(terminated),
+                "truncated": t(truncated),
+            },
+        },
+        batch_size=[n],
+    )
+
+
 def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int, history: int = 1) -> TensorDict:
     """One flat ``[N]`` TensorDict of all tasks, episodes numbered in task order."""
     cat = {
@@ -164,38 +242,25 @@ def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int, history: 
         )
     }
     lengths = np.concatenate([r.lengths for r in results.values()])
-    n = int(lengths.sum())
-    episode = np.repeat(np.arange(len(lengths), dtype=np.int64), lengths)
     task_id = np.concatenate([np.full(r.steps, _tasks.task_index(r.task), dtype=np.int64) for r in results.values()])
-    chunk, chunk_valid = _chunks(cat["action"], lengths, horizon)
-    past, past_valid = _history(cat["observation"], lengths, history)
     pixels = all(r.pixels is not None for r in results.values())
-    terminated = cat["terminated"][:, None]
-    truncated = cat["truncated"][:, None]
-    t = torch.from_numpy
-    return TensorDict(
-        {
-            "observation": t(cat["observation"]),
-            "action": t(cat["action"]),
-            "action_raw": t(cat["action_raw"]),
-            "episode": t(episode),
-            "task_id": t(task_id),
-            "step": t(cat["step"]),
-            "action_chunk": t(np.ascontiguousarray(chunk)),
-            "action_chunk_valid": t(chunk_valid),
-            "observation_history": t(np.ascontiguousarray(past)),
-            "observation_history_valid": t(past_valid),
-            **({"pixels": t(np.concatenate([r.pixels for r in results.values()]))} if pixels else {}),
-            "next": {
-                "observation": t(cat["next_observation"]),
-                "reward": t(cat["reward"][:, None]),
-                "done": t(terminated | truncated),
-                "terminated": t(terminated),
-                "truncated": t(truncated),
-            },
-        },
-        batch_size=[n],
+    data = steps_tensordict(
+        observation=cat["observation"],
+        action=cat["action"],
+        action_raw=cat["action_raw"],
+        next_observation=cat["next_observation"],
+        reward=cat["reward"],
+        terminated=cat["terminated"],
+        truncated=cat["truncated"],
+        lengths=lengths,
+        task_id=task_id,
+        horizon=horizon,
+        history=history,
+        pixels=np.concatenate([r.pixels for r in results.values()]) if pixels else None,
     )
+    if not np.array_equal(data["step"].numpy(), cat["step"]):
+        raise RuntimeError("the collected step indices disagree with the episode lengths")
+    return data
 
 
 def _stats(x: np.ndarray) -> dict[str, list[float]]:
@@ -382,6 +447,28 @@ def build_dataset(
     secs = time.perf_counter() - start
     data = _to_tensordict(results, chunk_horizon, history)
 
+    return load_dataset(write_dataset(root, name, data, _metadata(settings, key, results, data, secs)))
+
+
+def write_dataset(root: str | os.PathLike, name: str, data: TensorDict, metadata: dict) -> Path:
+    """Write ``data`` and ``metadata`` as the dataset folder ``root/name``, crash-safely.
+
+    The buffer is written in a temporary sibling folder, ``metadata.json`` last (the marker of a
+    complete dataset), then the folder is renamed into place. If another process completed
+    ``root/name`` first, its folder is kept; an incomplete one there is replaced.
+
+    Args:
+        root: the parent folder (must exist).
+        name: the dataset folder's name.
+        data: the ``[N]`` TensorDict of steps (see :func:`steps_tensordict`).
+        metadata: the metadata; ``keys`` (each entry's per-step shape and dtype) is added.
+
+    Returns:
+        The dataset folder ``root/name``.
+    """
+    root = Path(root)
+    final = root / name
+    metadata = {**metadata, "keys": _leaf_specs(data)}
     tmp = root / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         tmp.mkdir()
@@ -391,7 +478,7 @@ def build_dataset(
         rb.extend(data)
         rb.dumps(buffer_dir)
         del rb, storage
-        write_json_atomic(_metadata(settings, key, results, data, secs), tmp / METADATA_FILE)  # last: the marker
+        write_json_atomic(metadata, tmp / METADATA_FILE)  # last: the marker
         try:
             os.rename(tmp, final)
         except OSError:
@@ -399,14 +486,14 @@ def build_dataset(
             if not final.exists():
                 raise
             try:
-                return load_dataset(final)
+                load_dataset(final)
             except DatasetError:
                 shutil.rmtree(final)
                 os.rename(tmp, final)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    return load_dataset(final)
+    return final
 
 
 # -- Loading ----------------------------------------------------------------------------------

@@ -1,0 +1,388 @@
+"""robomimic / LIBERO HDF5 demonstrations into a tar-rl dataset folder.
+
+The HDF5 layout read (robomimic's, which LIBERO's demonstration files share)::
+
+    data/                        attrs: env_args (JSON), problem_info (JSON, LIBERO only)
+        demo_0/
+            obs/<key>            [T] or [T, d] low-dimensional observations (images are refused)
+            next_obs/<key>       optional, [T, ...]: the observation after each step
+            actions              [T, A], declared range [-1, 1]
+            dones                [T] (optional; absent: only the last step ends the episode)
+            rewards              [T] (optional; absent: zeros)
+        demo_1/ ...
+    mask/<filter>                optional: a list of demo names (bytes), e.g. "train", "valid"
+
+Per step, ``observation`` is the concatenation of the chosen ``obs/<key>`` entries, each flattened
+to ``[T, d]``, in the order given. ``action`` is the stored action (with ``clip=True`` clipped to
+[-1, 1]; ``action_raw`` keeps it as stored). ``("next", "observation")`` comes from ``next_obs``
+when the file holds every chosen key there, otherwise it is the following step's observation (the
+last step's own observation at the end of an episode). ``("next", "terminated")`` is ``dones``;
+``("next", "truncated")`` marks an episode's last step when ``dones`` does not. Demos are stored in
+their natural order (``demo_2`` before ``demo_10``), or in the filter's order.
+
+Tasks: one task per file, named by LIBERO's ``problem_info.problem_name``, else robomimic's
+``env_args.env_name``, else the file's stem. Files with the same task name share a task id; ids
+follow the order in which the names first appear.
+
+Every file is read and checked completely before anything is written: a missing key, ragged
+arrays, a NaN or Inf, an action outside [-1, 1] (without ``clip``), an unknown or empty filter
+raise :class:`DemoImportError` naming the file, the demo and the key. The dataset folder is then
+written by :func:`tar_rl.data.write_dataset` (temporary folder, ``metadata.json`` last, rename).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tar_rl import data as _data
+
+__all__ = ["ACTION_RANGE", "NAME_PREFIX", "DemoImportError", "import_robomimic"]
+
+NAME_PREFIX = "robomimic-"
+ACTION_RANGE = (-1.0, 1.0)
+ACTION_TARGET = "the stored action (declared range [-1, 1]); clipped to it only with clip=True; action_raw as stored"
+
+
+class DemoImportError(ValueError):
+    """A demonstration file cannot be imported (the message names the file, demo and key)."""
+
+
+def _natural_key(name: str) -> tuple:
+    return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name))
+
+
+def _json_attr(group, name: str, where: str):
+    if name not in group.attrs:
+        return None
+    raw = group.attrs[name]
+    if isinstance(raw, bytes):
+        raw = raw.decode()
+    try:
+        return json.loads(raw)
+    except (TypeError, ValueError) as err:
+        raise DemoImportError(f"{where}: attribute {name!r} is not valid JSON: {err}") from err
+
+
+def _parse_keys(obs_keys: str | Sequence[str]) -> list[str]:
+    keys = [k.strip() for k in obs_keys.split(",")] if isinstance(obs_keys, str) else [str(k) for k in obs_keys]
+    keys = [k for k in keys if k]
+    if not keys:
+        raise DemoImportError("obs_keys is empty: name at least one low-dimensional observation key")
+    dup = sorted({k for k in keys if keys.count(k) > 1})
+    if dup:
+        raise DemoImportError(f"obs_keys names {dup} more than once")
+    return keys
+
+
+def _read_array(demo, key: str, where: str, length: int | None) -> np.ndarray:
+    """``demo[key]`` as a ``[T, d]`` float array, checked for existence, rank, length and finiteness."""
+    if key not in demo:
+        parent = key.rpartition("/")[0]
+        group = demo[parent] if parent and parent in demo else demo
+        have = sorted(group.keys()) if hasattr(group, "keys") else []
+        raise DemoImportError(f"{where}: key {key!r} is missing (present: {have})")
+    value = np.asarray(demo[key][()])
+    if value.ndim == 0 or value.ndim > 2:
+        raise DemoImportError(
+            f"{where}: key {key!r} has shape {list(value.shape)}; only low-dimensional entries ([T] or [T, d]) "
+            "can be imported"
+        )
+    if not (np.issubdtype(value.dtype, np.number) or value.dtype == bool):
+        raise DemoImportError(f"{where}: key {key!r} has non-numeric dtype {value.dtype}")
+    value = value.reshape(len(value), -1)
+    if length is not None and len(value) != length:
+        raise DemoImportError(f"{where}: key {key!r} has {len(value)} steps, 'actions' has {length} (ragged arrays)")
+    bad = ~np.isfinite(value.astype(np.float64))
+    if bad.any():
+        t = int(np.argwhere(bad)[0][0])
+        raise DemoImportError(f"{where}: key {key!r} holds NaN or Inf (first at step {t})")
+    return value
+
+
+def _read_file(path: Path, keys: list[str], filter_key: str | None, clip: bool) -> dict:
+    import h5py
+
+    if not path.is_file():
+        raise DemoImportError(f"{path}: no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise DemoImportError(f"{path}: not a readable HDF5 file ({err})") from err
+    with f:
+        if "data" not in f:
+            raise DemoImportError(f"{path}: no 'data' group (not a robomimic/LIBERO file)")
+        group = f["data"]
+        env_args = _json_attr(group, "env_args", f"{path}: data")
+        problem_info = _json_attr(group, "problem_info", f"{path}: data")
+        if filter_key is not None:
+            masks = sorted(f["mask"].keys()) if "mask" in f else []
+            if filter_key not in masks:
+                raise DemoImportError(f"{path}: filter {filter_key!r} not found (filters in the file: {masks})")
+            names = [n.decode() if isinstance(n, bytes) else str(n) for n in np.asarray(f["mask"][filter_key][()])]
+            if not names:
+                raise DemoImportError(f"{path}: filter {filter_key!r} ('mask/{filter_key}') lists no demos")
+            missing = [n for n in names if n not in group]
+            if missing:
+                raise DemoImportError(f"{path}: filter {filter_key!r} names demos not in 'data': {missing}")
+        else:
+            names = sorted(group.keys(), key=_natural_key)
+            if not names:
+                raise DemoImportError(f"{path}: 'data' holds no demos")
+        demos = []
+        for name in names:
+            demo = group[name]
+            where = f"{path}: demo {name!r}"
+            actions = _read_array(demo, "actions", where, None).astype(np.float32)
+            n = len(actions)
+            if n == 0:
+                raise DemoImportError(f"{where}: key 'actions' has no steps (empty episode)")
+            obs = np.concatenate([_read_array(demo, f"obs/{k}", where, n) for k in keys], axis=1)
+            if "next_obs" in demo and all(k in demo["next_obs"] for k in keys):
+                next_obs = np.concatenate([_read_array(demo, f"next_obs/{k}", where, n) for k in keys], axis=1)
+            else:
+                next_obs = np.concatenate([obs[1:], obs[-1:]])
+            dones = _read_array(demo, "dones", where, n)[:, 0] != 0 if "dones" in demo else np.zeros(n, bool)
+            rewards = _read_array(demo, "rewards", where, n)[:, 0] if "rewards" in demo else np.zeros(n)
+            lo, hi = ACTION_RANGE
+            outside = (actions < lo) | (actions > hi)
+            if outside.any() and not clip:
+                t, j = (int(i) for i in np.argwhere(outside)[0])
+                raise DemoImportError(
+                    f"{where}: key 'actions' leaves the declared range [{lo:g}, {hi:g}] "
+                    f"({outside.sum()} entries, first at step {t}, dim {j}: {actions[t, j]:.6g}); pass clip=True "
+                    "(--clip) to clip them"
+                )
+            demos.append(
+                {
+                    "name": name,
+                    "observation": obs.astype(np.float32),
+                    "next_observation": next_obs.astype(np.float32),
+                    "action_raw": actions,
+                    "action": np.clip(actions, lo, hi),
+                    "reward": rewards.astype(np.float32),
+                    "terminated": dones,
+                    "clipped": int(outside.sum()),
+                }
+            )
+        dims = [int(np.prod(group[names[0]]["obs"][k].shape[1:], dtype=np.int64)) for k in keys]
+    widths = {(d["observation"].shape[1], d["action"].shape[1]) for d in demos}
+    if len(widths) != 1:
+        raise DemoImportError(f"{path}: demos disagree on the observation/action widths {sorted(widths)}")
+    if problem_info and problem_info.get("problem_name"):
+        task = str(problem_info["problem_name"])
+    elif env_args and env_args.get("env_name"):
+        task = str(env_args["env_name"])
+    else:
+        task = path.stem
+    instruction = (problem_info or {}).get("language_instruction")
+    return {
+        "path": path,
+        "task": task,
+        "instruction": instruction,
+        "env_args": env_args,
+        "problem_info": problem_info,
+        "demos": demos,
+        "dims": dims,
+        "width": widths.pop(),
+    }
+
+
+def _fingerprint(path: Path) -> dict:
+    st = path.stat()
+    return {"path": str(path.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def import_robomimic(
+    paths: str | os.PathLike | Sequence[str | os.PathLike],
+    obs_keys: str | Sequence[str],
+    *,
+    filter_key: str | None = None,
+    out: str | os.PathLike = "data",
+    chunk_horizon: int = 8,
+    history: int = 2,
+    clip: bool = False,
+    verbose: bool = True,
+) -> _data.DemoDataset:
+    """Import robomimic/LIBERO HDF5 files as one tar-rl dataset folder under ``out``.
+
+    The folder is ``out/robomimic-<stem>-<key>``, ``key`` a hash of the settings and of the
+    files' paths, sizes and modification times: importing the same files with the same settings
+    again loads the existing folder.
+
+    Args:
+        paths: one HDF5 file or several (one task per file, see the module docstring).
+        obs_keys: the low-dimensional ``obs/<key>`` entries, concatenated in this order (a list,
+            or one comma-separated string such as ``"robot0_eef_pos,robot0_eef_quat,object"``).
+        filter_key: import only the demos listed in ``mask/<filter_key>``; ``None``: every demo.
+        out: the folder holding datasets.
+        chunk_horizon: ``H`` of ``action_chunk`` (``[H, A]`` per step).
+        history: ``K`` of ``observation_history`` (``[K, D]`` per step).
+        clip: clip actions outside [-1, 1] instead of refusing them.
+        verbose: print a one-line summary.
+
+    Returns:
+        The imported :class:`~tar_rl.data.DemoDataset`.
+
+    Raises:
+        DemoImportError: bad input (the message names the file, demo and key); nothing is written.
+    """
+    files = [Path(paths)] if isinstance(paths, (str, os.PathLike)) else [Path(p) for p in paths]
+    if not files:
+        raise DemoImportError("no files to import")
+    keys = _parse_keys(obs_keys)
+    try:
+        chunk_horizon = _data._positive_int("chunk_horizon", chunk_horizon)
+        history = _data._positive_int("history", history)
+    except ValueError as err:
+        raise DemoImportError(str(err)) from None
+    if filter_key is not None and not str(filter_key):
+        raise DemoImportError("filter_key is empty: give a filter name (e.g. 'train') or None for every demo")
+
+    start = time.perf_counter()
+    sources = [_read_file(p, keys, filter_key, bool(clip)) for p in files]  # everything checked before writing
+    widths = {s["width"] for s in sources}
+    if len(widths) != 1:
+        raise DemoImportError(f"the files disagree on (observation, action) widths: {sorted(widths)}")
+    dims = {tuple(s["dims"]) for s in sources}
+    if len(dims) != 1:
+        raise DemoImportError(f"the files disagree on the widths of the keys {keys}: {sorted(dims)}")
+
+    settings = {
+        "source": "robomimic",
+        "files": [_fingerprint(p) for p in files],
+        "obs_keys": keys,
+        "filter": filter_key,
+        "chunk_horizon": chunk_horizon,
+        "history": history,
+        "clip": bool(clip),
+        "format_version": _data.FORMAT_VERSION,
+    }
+    key = _data.cache_key(settings)
+    name = f"{NAME_PREFIX}{files[0].stem}-{key}"
+    root = Path(out)
+    final = root / name
+    root.mkdir(parents=True, exist_ok=True)
+    _data._clean_temp_siblings(root, name)
+    if final.exists():
+        try:
+            found = _data.load_dataset(final)
+            if found.metadata.get("settings") == settings:
+                if verbose:
+                    print(f"already imported: {final}")
+                return found
+            raise _data.DatasetError("its metadata describes other settings")
+        except _data.DatasetError as err:
+            print(f"dataset {final} is incomplete or stale ({err}); removing it and importing again")
+            shutil.rmtree(final)
+
+    tasks: list[str] = []
+    for s in sources:
+        if s["task"] not in tasks:
+            tasks.append(s["task"])
+    episodes = [(s, d) for s in sources for d in s["demos"]]
+    lengths = np.array([len(d["action"]) for _, d in episodes], dtype=np.int64)
+    ends = np.cumsum(lengths) - 1
+    truncated = np.zeros(int(lengths.sum()), dtype=bool)
+    cat = {k: np.concatenate([d[k] for _, d in episodes]) for k in episodes[0][1] if k not in ("name", "clipped")}
+    truncated[ends] = ~cat["terminated"][ends]
+    task_id = np.concatenate([np.full(len(d["action"]), tasks.index(s["task"]), np.int64) for s, d in episodes])
+    data = _data.steps_tensordict(
+        observation=cat["observation"],
+        action=cat["action"],
+        action_raw=cat["action_raw"],
+        next_observation=cat["next_observation"],
+        reward=cat["reward"],
+        terminated=cat["terminated"],
+        truncated=truncated,
+        lengths=lengths,
+        task_id=task_id,
+        horizon=chunk_horizon,
+        history=history,
+    )
+    metadata = _metadata(settings, key, keys, sources, tasks, data, lengths, time.perf_counter() - start)
+    path = _data.write_dataset(root, name, data, metadata)
+    dataset = _data.load_dataset(path)
+    if verbose:
+        print(
+            f"imported {len(episodes)} episodes, {len(data)} steps, {len(tasks)} task(s) from "
+            f"{len(files)} file(s) into {path}"
+        )
+    return dataset
+
+
+def _metadata(settings, key, keys, sources, tasks, data, lengths, secs) -> dict:
+    import tar_rl
+
+    dims = sources[0]["dims"]
+    offsets = np.concatenate([[0], np.cumsum(dims)]).tolist()
+    per_task = {}
+    for t, task in enumerate(tasks):
+        mine = [s for s in sources if s["task"] == task]
+        demo_lengths = [len(d["action"]) for s in mine for d in s["demos"]]
+        per_task[task] = {
+            "task_id": t,
+            "instruction": next((s["instruction"] for s in mine if s["instruction"]), None),
+            "episodes": len(demo_lengths),
+            "kept": len(demo_lengths),
+            "steps": int(sum(demo_lengths)),
+            "episode_lengths": demo_lengths,
+            "files": [str(s["path"]) for s in mine],
+        }
+    return {
+        "format_version": _data.FORMAT_VERSION,
+        "source": "robomimic",
+        "cache_key": key,
+        "settings": settings,
+        "tasks": tasks,
+        "task_ids": {task: p["task_id"] for task, p in per_task.items()},
+        "instructions": {task: p["instruction"] for task, p in per_task.items()},
+        "per_task": per_task,
+        "sources": [
+            {
+                "path": str(s["path"].resolve()),
+                "task": s["task"],
+                "filter": settings["filter"],
+                "episodes": len(s["demos"]),
+                "steps": int(sum(len(d["action"]) for d in s["demos"])),
+                "demos": [d["name"] for d in s["demos"]],
+                "clipped_action_entries": int(sum(d["clipped"] for d in s["demos"])),
+                "env_args": s["env_args"],
+                "problem_info": s["problem_info"],
+            }
+            for s in sources
+        ],
+        "obs_keys": [
+            {"key": k, "dim": d, "slice": [offsets[i], offsets[i + 1]]} for i, (k, d) in enumerate(zip(keys, dims))
+        ],
+        "total_steps": int(data.shape[0]),
+        "total_episodes": len(lengths),
+        "chunk_horizon": settings["chunk_horizon"],
+        "history": settings["history"],
+        "image_size": 0,
+        "action_range": list(ACTION_RANGE),
+        "action_target": ACTION_TARGET,
+        "stats": {
+            "observation": _data._stats(data["observation"].numpy()),
+            "action": _data._stats(data["action"].numpy()),
+            "action_raw": _data._stats(data["action_raw"].numpy()),
+        },
+        "versions": {
+            "tar_rl": tar_rl.__version__,
+            "torch": torch.__version__,
+            "torchrl": _data._version("torchrl"),
+            "tensordict": _data._version("tensordict"),
+            "h5py": _data._version("h5py"),
+            "numpy": np.__version__,
+        },
+        "import_seconds": secs,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
