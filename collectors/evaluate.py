@@ -66,6 +66,9 @@ ACTION_DIM = 4
 # conversion whatever the batch size (measured with a 39-256-256-4 MLP on a 2-core machine), and
 # each MetaWorld env a worker builds costs ~0.14 s (its XML model). For S env steps at most, a
 # batch of B envs costs ~0.8e-3 * S / B + 0.14 * B, least at B = sqrt(S * 0.8e-3 / 0.14).
+# (Later measurements: a copied env costs ~6 ms, but 24 or 36 slots for 60 rollouts of the
+# benchmark policy were no faster than the default 13: more envs per batch step run colder in
+# the CPU caches. The default is kept; see benchmarks/bench_eval.py.)
 _BATCH_STEP_OVERHEAD_S = 0.8e-3
 _ENV_BUILD_S = 0.14
 _MIN_BATCH, _MAX_BATCH = 4, 32
