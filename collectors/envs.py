@@ -5,7 +5,8 @@ Both are ``torchrl.envs.GymWrapper`` around bare MetaWorld environments (``tasks
 
 * ``success``: a bool entry read from MetaWorld's info by ``SuccessReader`` (torchrl's
   ``default_info_dict_reader`` crashes on the Python float MetaWorld returns);
-* ``observation`` in float32 (``DoubleToFloat``: MetaWorld gives float64 and GymWrapper keeps it);
+* ``observation`` in float32: MetaWorld gives float64; ``MaskedVectorEnv`` casts the batch once in
+  numpy (its observation space is float32), and the one-task env uses ``DoubleToFloat``;
 * ``task_id``: the task's fixed index (``tasks.task_index``, int64), written on reset and carried
   through every step by torchrl's ``TensorDictPrimer``, so that multi-task policies can read it.
 
@@ -25,7 +26,9 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
+from gymnasium.spaces import Box
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
+from gymnasium.vector.utils import batch_space
 from torchrl.data import Unbounded
 from torchrl.envs import Compose, DoubleToFloat, GymWrapper, InitTracker, TensorDictPrimer, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
@@ -73,6 +76,15 @@ class MaskedVectorEnv(SyncVectorEnv):
         if not envs:
             raise ValueError("MaskedVectorEnv needs at least one environment")
         super().__init__([_Const(e) for e in envs], copy=False, autoreset_mode=AutoresetMode.DISABLED)
+        # The batch is handed out in float32 (what policies read): one numpy cast per step here is
+        # cheaper than a DoubleToFloat transform on the TorchRL side (same rounding, to nearest).
+        self._bare_observation_space = self.single_observation_space
+        low, high = (
+            bound.astype(np.float32)
+            for bound in (self.single_observation_space.low, self.single_observation_space.high)
+        )
+        self.single_observation_space = Box(low, high, dtype=np.float32)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.active = np.ones(self.num_envs, dtype=bool)
         self.failures = [""] * self.num_envs
         #: The task id of each slot, read (cloned) by the ``task_id`` primer at every reset.
@@ -80,7 +92,7 @@ class MaskedVectorEnv(SyncVectorEnv):
 
     def replace(self, i: int, env, task_id: int) -> None:
         """Put ``env`` (a bare MetaWorld env, already ``set_task``) in slot ``i``; reset that slot next."""
-        if env.observation_space != self.single_observation_space or env.action_space != self.single_action_space:
+        if env.observation_space != self._bare_observation_space or env.action_space != self.single_action_space:
             raise ValueError(f"slot {i}: the new env's spaces differ from the batch's")
         self.envs[i] = env
         self.task_ids[i] = task_id
@@ -104,7 +116,7 @@ class MaskedVectorEnv(SyncVectorEnv):
                 if self._env_obs[i] is None:
                     space = self.single_observation_space
                     self._env_obs[i] = np.zeros(space.shape, dtype=space.dtype)
-        return np.stack(self._env_obs), {}
+        return np.stack(self._env_obs, dtype=np.float32), {}
 
     def step(self, actions):
         n = self.num_envs
@@ -132,7 +144,7 @@ class MaskedVectorEnv(SyncVectorEnv):
             terminated[i] = term
             truncated[i] = trunc
             success[i] = info.get("success", 0.0)
-        return np.stack(self._env_obs), rewards, terminated, truncated, {"success": success}
+        return np.stack(self._env_obs, dtype=np.float32), rewards, terminated, truncated, {"success": success}
 
 
 class _Const:
@@ -151,12 +163,12 @@ def _reward_spec(batch_size) -> Unbounded:
     return Unbounded((*batch_size, 1), dtype=torch.float64)
 
 
-def _transforms(task_ids: torch.Tensor) -> Compose:
+def _transforms(task_ids: torch.Tensor, to_float: bool) -> Compose:
     # InitTracker writes `is_init` ([..., 1] bool): True on the first step of a rollout (also in a
     # slot that a partial reset refills), so stateful policies (history, action chunks) know
     # when to forget.
     return Compose(
-        DoubleToFloat(in_keys=["observation"]),
+        *([DoubleToFloat(in_keys=["observation"])] if to_float else []),
         InitTracker(init_key="is_init"),
         TensorDictPrimer(
             expand_specs=True,
@@ -179,7 +191,7 @@ def make_metaworld_env(task: str, variation=None) -> TransformedEnv:
     env = GymWrapper(bare)
     env.set_info_dict_reader(SuccessReader())
     env.reward_spec = _reward_spec(())
-    return TransformedEnv(env, _transforms(torch.tensor(index, dtype=torch.int64)))
+    return TransformedEnv(env, _transforms(torch.tensor(index, dtype=torch.int64), to_float=True))
 
 
 def make_batched_env(envs: Sequence, task_names: Sequence[str]) -> tuple[TransformedEnv, MaskedVectorEnv]:
@@ -194,4 +206,4 @@ def make_batched_env(envs: Sequence, task_names: Sequence[str]) -> tuple[Transfo
     env = GymWrapper(vec)
     env.set_info_dict_reader(SuccessReader((len(envs),)))
     env.reward_spec = _reward_spec((len(envs),))
-    return TransformedEnv(env, _transforms(vec.task_ids)), vec
+    return TransformedEnv(env, _transforms(vec.task_ids, to_float=False)), vec

@@ -263,6 +263,31 @@ def test_make_metaworld_env_entries():
         make_metaworld_env("nope")
 
 
+def test_batched_env_gives_the_bare_observations_in_float32():
+    from tar_rl.collectors.envs import make_batched_env
+
+    names = ["reach-v3", "drawer-close-v3"]
+    bare, ref = [], []
+    for name in names:  # a twin of each env, stepped by hand with numpy (the reference)
+        for group in (bare, ref):
+            env = tasks.make_env(name)
+            env.set_task(tasks.variation(name, 1000, 0))
+            group.append(env)
+    env, _ = make_batched_env(bare, names)
+    assert env.observation_spec["observation"].dtype == torch.float32
+    td = env.reset()
+    expected = np.stack([e.reset()[0] for e in ref]).astype(np.float32)  # float64 -> float32, to nearest
+    assert td["observation"].dtype == torch.float32
+    assert np.array_equal(td["observation"].numpy(), expected)
+    action = np.array([[0.5, -0.2, 0.1, 1.0], [-0.3, 0.4, 0.0, -1.0]], dtype=np.float32)
+    td["action"] = torch.from_numpy(action)
+    nxt = env.step(td)["next"]
+    expected = np.stack([e.step(a)[0] for e, a in zip(ref, action)]).astype(np.float32)
+    assert nxt["observation"].dtype == torch.float32
+    assert np.array_equal(nxt["observation"].numpy(), expected)
+    assert nxt["task_id"].tolist() == [tasks.TASKS.index(n) for n in names]
+
+
 def test_policy_training_mode_is_restored():
     policy = ConstPolicy(0.0)
     policy.train()
