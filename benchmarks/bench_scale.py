@@ -100,7 +100,10 @@ def _train_rank(rank: int, world: int, steps: int, store: str, out: str) -> None
     if rank == 0:
         Path(out).write_text(str(seconds))
     if world > 1:
-        torch.distributed.destroy_process_group()
+        from tar_rl.distributed import close_group
+
+        del model
+        close_group()
 
 
 def train_throughput(world: int, steps: int) -> float:

@@ -21,7 +21,7 @@ from typing import Any
 import torch
 import torch.distributed as torch_dist
 
-__all__ = ["Dist", "data_parallel", "init", "shutdown"]
+__all__ = ["Dist", "close_group", "data_parallel", "init", "shutdown"]
 
 # Long enough for rank 0 to collect a demonstration dataset while the others wait at a barrier.
 # A rank that dies does not leave the others waiting this long: torchrun stops the whole group.
@@ -113,7 +113,20 @@ def init(device_type: str = "cpu") -> Dist:
     return Dist(rank=rank, world=world, local_rank=local_rank)
 
 
-def shutdown(d: Dist) -> None:
-    """Close the process group opened by :func:`init` (no-op for a single process)."""
-    if d.active and torch_dist.is_initialized():
+def close_group() -> None:
+    """A barrier, then ``destroy_process_group()``.
+
+    gloo's worker threads release completed collectives (DDP's gradient all-reduces) after they
+    complete, and that release may need the GIL; if the process group is destroyed (by dropping the
+    last DDP model, which holds it) while the main thread holds the GIL, the two wait for each other
+    forever. The barrier waits without the GIL, so those releases finish first.
+    """
+    if torch_dist.is_initialized():
+        torch_dist.barrier()
         torch_dist.destroy_process_group()
+
+
+def shutdown(d: Dist) -> None:
+    """Close the process group opened by :func:`init` (no-op for a single process); see :func:`close_group`."""
+    if d.active:
+        close_group()

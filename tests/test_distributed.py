@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 from datetime import timedelta
 from pathlib import Path
 
@@ -54,12 +55,12 @@ def _batch() -> TensorDict:
 
 
 def _rank_worker(rank: int, world: int, store_path: str, out_dir: str) -> None:
+    from tar_rl.distributed import close_group, data_parallel
+
     torch.set_num_threads(1)
     store = torch_dist.FileStore(store_path, world)
     torch_dist.init_process_group("gloo", store=store, rank=rank, world_size=world, timeout=timedelta(seconds=120))
     try:
-        from tar_rl.distributed import data_parallel
-
         objective = _objective()
         model = data_parallel(objective)
         share = B // world
@@ -67,12 +68,35 @@ def _rank_worker(rank: int, world: int, store_path: str, out_dir: str) -> None:
         out["loss_tar"].backward()
         grads = {n: p.grad.clone() for n, p in objective.named_parameters() if p.grad is not None}
         torch.save({"loss": out["loss_tar"].detach(), "grads": grads}, Path(out_dir) / f"rank{rank}.pt")
+        del model, out
     finally:
-        torch_dist.destroy_process_group()
+        close_group()
+
+
+def _join_after_results(context, results, limit: float = 300.0, grace: float = 30.0) -> None:
+    """Join spawned ranks; once every result file is written, give them ``grace`` seconds to exit.
+
+    The check here is the ranks' numbers. A rank stuck in process-group teardown after writing them
+    (gloo's threads and the GIL; see ``tar_rl.distributed.close_group``) is terminated rather than
+    hanging the suite; a rank that fails raises as ``mp.spawn`` does.
+    """
+    start = time.monotonic()
+    written = None
+    while not context.join(timeout=1):
+        now = time.monotonic()
+        if written is None and all(Path(r).exists() for r in results):
+            written = now
+        if (written is not None and now - written > grace) or now - start > limit:
+            for process in context.processes:
+                if process.is_alive():
+                    process.terminate()
+            assert written is not None, f"the ranks wrote no results within {limit} s"
+            return
 
 
 def test_two_ranks_give_the_loss_and_gradient_of_the_concatenated_batch(tmp_path):
-    mp.spawn(_rank_worker, args=(2, str(tmp_path / "store"), str(tmp_path)), nprocs=2, join=True)
+    context = mp.spawn(_rank_worker, args=(2, str(tmp_path / "store"), str(tmp_path)), nprocs=2, join=False)
+    _join_after_results(context, [tmp_path / f"rank{r}.pt" for r in range(2)])
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2)]
     single = _objective()
     out = single(_batch())

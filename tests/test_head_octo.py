@@ -505,6 +505,8 @@ def test_ddp_without_unused_parameters_trains_two_steps(tmp_path, name):
     import torch.distributed as dist
     from torch.nn.parallel import DistributedDataParallel
 
+    from tar_rl.distributed import close_group
+
     store = dist.FileStore(str(tmp_path / "store"), 1)
     dist.init_process_group("gloo", store=store, rank=0, world_size=1, timeout=timedelta(seconds=60))
     try:
@@ -521,8 +523,9 @@ def test_ddp_without_unused_parameters_trains_two_steps(tmp_path, name):
             loss.backward()
             optimizer.step()
         assert torch.isfinite(loss)
+        del model
     finally:
-        dist.destroy_process_group()
+        close_group()
 
 
 # -- Through the recipe ----------------------------------------------------------------------
