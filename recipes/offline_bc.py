@@ -780,6 +780,7 @@ def train(cfg: Any) -> Path:
             rollouts = config["eval"]["rollouts"]
             print(f"\n{run_dir}: {trainer.steps} steps, final evaluation ({rollouts} rollouts per task):")
             print_table(table)
+        del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()
         return run_dir
     finally:

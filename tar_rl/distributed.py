@@ -114,12 +114,14 @@ def init(device_type: str = "cpu") -> Dist:
 
 
 def close_group() -> None:
-    """A barrier, then ``destroy_process_group()``.
+    """On the normal path: a barrier, then ``destroy_process_group()``.
 
     gloo's worker threads release completed collectives (DDP's gradient all-reduces) after they
     complete, and that release may need the GIL; if the process group is destroyed (by dropping the
     last DDP model, which holds it) while the main thread holds the GIL, the two wait for each other
-    forever. The barrier waits without the GIL, so those releases finish first.
+    forever. Drop the DDP model first, then call this: the barrier waits without the GIL, so those
+    releases finish first. Not on an error path: a barrier there would wait for ranks that are
+    still inside a collective the failing rank never joined.
     """
     if torch_dist.is_initialized():
         torch_dist.barrier()
@@ -127,6 +129,7 @@ def close_group() -> None:
 
 
 def shutdown(d: Dist) -> None:
-    """Close the process group opened by :func:`init` (no-op for a single process); see :func:`close_group`."""
-    if d.active:
-        close_group()
+    """Destroy the process group opened by :func:`init` (no-op for a single process), without a
+    barrier: it also runs when a rank fails (see :func:`close_group` for the normal path)."""
+    if d.active and torch_dist.is_initialized():
+        torch_dist.destroy_process_group()

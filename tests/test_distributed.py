@@ -69,8 +69,10 @@ def _rank_worker(rank: int, world: int, store_path: str, out_dir: str) -> None:
         grads = {n: p.grad.clone() for n, p in objective.named_parameters() if p.grad is not None}
         torch.save({"loss": out["loss_tar"].detach(), "grads": grads}, Path(out_dir) / f"rank{rank}.pt")
         del model, out
+        close_group()  # the normal path: see tar_rl.distributed.close_group
     finally:
-        close_group()
+        if torch_dist.is_initialized():
+            torch_dist.destroy_process_group()
 
 
 def _join_after_results(context, results, limit: float = 300.0, grace: float = 30.0) -> None:

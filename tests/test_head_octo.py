@@ -524,8 +524,10 @@ def test_ddp_without_unused_parameters_trains_two_steps(tmp_path, name):
             optimizer.step()
         assert torch.isfinite(loss)
         del model
-    finally:
         close_group()
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
 
 
 # -- Through the recipe ----------------------------------------------------------------------
