@@ -120,10 +120,11 @@ def _rollout(env, policy, buf: dict[str, np.ndarray], render=None) -> tuple[int,
     the image of observation ``t``.
     """
     obs_buf, raw_buf, act_buf, rew_buf = buf["obs"], buf["raw"], buf["act"], buf["rew"]
+    pix_buf = buf.get("pix")
     obs, _ = env.reset()
     obs_buf[0] = obs
     if render is not None:
-        return _rollout_rendered(env, policy, buf, render, obs)
+        pix_buf[0] = render(env)
     get_action = policy.get_action
     step = env.step
     for t in range(HORIZON):
@@ -138,27 +139,9 @@ def _rollout(env, policy, buf: dict[str, np.ndarray], render=None) -> tuple[int,
             return t + 1, True
         if truncated:
             return t + 1, False
+        if render is not None:
+            pix_buf[t + 1] = render(env)  # the image of the next step's observation
     return HORIZON, False  # unreachable: MetaWorld truncates at step 500
-
-
-def _rollout_rendered(env, policy, buf: dict[str, np.ndarray], render, obs) -> tuple[int, bool]:
-    """``_rollout``'s loop with an image of every observation (kept apart so the plain loop stays bare)."""
-    pix_buf = buf["pix"]
-    pix_buf[0] = render(env)
-    for t in range(HORIZON):
-        raw = policy.get_action(obs)
-        buf["raw"][t] = raw
-        act = np.clip(raw, -1.0, 1.0)
-        buf["act"][t] = act
-        obs, reward, _terminated, truncated, info = env.step(act)
-        buf["obs"][t + 1] = obs
-        buf["rew"][t] = reward
-        if info["success"]:
-            return t + 1, True
-        if truncated:
-            return t + 1, False
-        pix_buf[t + 1] = render(env)  # the image of the next step's observation
-    return HORIZON, False
 
 
 def collect_task(

@@ -10,6 +10,7 @@ and one tiny training job runs through the recipe. Head-specific checks live in 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pickle
@@ -23,6 +24,7 @@ from tensordict import TensorDict
 from tar_rl import TARLoss
 from tar_rl.collectors.tasks import TASKS
 from tar_rl.policies import POLICIES, DataInfo, build_policy
+from tar_rl.recipes.config import ObjectiveConfig
 from tar_rl.recipes.offline_bc import make_objective, train
 
 HEADS = sorted(POLICIES)
@@ -36,22 +38,8 @@ def _head(name: str, seed: int = 0):
 
 
 def _objective(policy, weighting: str = "uniform") -> TARLoss:
-    config = {
-        "objective": {
-            "name": weighting,
-            "gamma": 1.0,
-            "w_max": 3.0,
-            "eps": 1e-6,
-            "cap": "paper",
-            "start": 0.0,
-            "ramp": 0.0,
-            "shape": "linear",
-            "perturb_fraction": 0.25,
-            "perturb_scale": 0.1,
-        },
-        "optim": {"steps": 100},
-        "seed": 0,
-    }
+    objective = {**dataclasses.asdict(ObjectiveConfig()), "name": weighting, "start": 0.0, "ramp": 0.0}
+    config = {"objective": objective, "optim": {"steps": 100}, "seed": 0}
     return make_objective(config, policy)
 
 

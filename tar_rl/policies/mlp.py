@@ -98,11 +98,11 @@ class MLPPolicy(nn.Module):
             self.norm = nn.Identity()
         task_width = {"embedding": cfg.task_dim, "instruction": cfg.task_dim, "onehot": info.n_tasks, "none": 0}
         task_width = task_width[self.conditioning]
-        # A plain nn.Embedding for "embedding" keeps the state-dict keys of earlier checkpoints.
-        self.task_embedding = {
-            "embedding": lambda: nn.Embedding(info.n_tasks, cfg.task_dim),
-            "instruction": lambda: TaskEncoder("instruction", info.n_tasks, cfg.task_dim),
-        }.get(self.conditioning, lambda: None)()
+        self.task_embedding = None
+        if self.conditioning == "embedding":  # a plain nn.Embedding keeps earlier checkpoints' state-dict keys
+            self.task_embedding = nn.Embedding(info.n_tasks, cfg.task_dim)
+        elif self.conditioning == "instruction":
+            self.task_embedding = TaskEncoder("instruction", info.n_tasks, cfg.task_dim)
         layers: list[nn.Module] = []
         state_width = PROPRIO_DIMS + cfg.image_dim if self.image is not None else info.obs_dim
         width = state_width + task_width
