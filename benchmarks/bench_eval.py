@@ -18,6 +18,12 @@ fix, for each rollout, the steps the raw side replays.
 * ``raw``: bare MetaWorld envs, uniform random actions, a plain ``env.step`` loop; one env
   per task per process (kept between rounds, as the evaluator keeps its envs), ``set_task`` +
   ``reset`` per rollout, then exactly the rollout's step count.
+* ``raw_interleaved``: the same bare loop, but with the evaluator's schedule: its batch size, its
+  shard order and its slot refills (``evaluate._interleave``, ``evaluate._Pending``), stepping the
+  running envs of the batch in turn. Stepping several MuJoCo models in turn runs colder in the CPU
+  caches than one env in a row, and a batch runs part-empty at the end of a shard; this side pays
+  both, so ``eval / raw_interleaved`` is what the evaluator's own machinery (TorchRL env, policy
+  call, bookkeeping) costs, and ``eval / raw`` is the whole price of batched evaluation.
 * ``eval``: ``tar_rl.collectors.evaluate.evaluate`` with the trained policy: batched TorchRL env,
   one policy call per batch step, refills, env construction, bookkeeping.
 
@@ -42,7 +48,9 @@ steps per rollout).
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
+import math
 import sys
 import tempfile
 import time
@@ -65,6 +73,8 @@ COLUMNS = [
     "raw_steps_per_s",
     "eval_steps_per_s",
     "ratio",
+    "raw_interleaved_steps_per_s",
+    "ratio_interleaved",
     "tasks",
     "rollouts_per_task",
     "horizon",
@@ -98,6 +108,51 @@ def raw_shard(shard, variations=None, rng_seed=0) -> int:
         for _ in range(steps):
             env.step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
         executed += steps
+    return executed
+
+
+_RAW_IDLE: dict[str, list] = {}  # the interleaved raw side's envs per task, kept between rounds
+
+
+def raw_interleaved_shard(shard, variations=None, rng_seed=0, *, batch: int) -> int:
+    """``raw_shard`` on the evaluator's schedule: ``batch`` slots stepped in turn, refilled as it refills them."""
+    from tar_rl.collectors import tasks
+    from tar_rl.collectors.evaluate import _interleave, _Pending
+
+    tasks.add_variations(variations or {})
+    rng = np.random.default_rng(rng_seed)
+    length = {(task, k): steps for task, k, steps in shard}
+    pending = _Pending(_interleave([(task, k) for task, k, _ in shard]))
+
+    def start(i, task, k, env=None):
+        if env is None:
+            idle = _RAW_IDLE.setdefault(task, [])
+            env = idle.pop() if idle else tasks.make_env(task)
+        env.set_task(tasks.variation(task, SEED, k))
+        env.reset()
+        slots[i] = [task, k, env, length[(task, k)]]
+
+    slots: list = [None] * min(batch, len(length))
+    for i in range(len(slots)):
+        start(i, *pending.pop())
+    executed = 0
+    while any(slots):
+        for slot in slots:
+            if slot is not None:
+                slot[2].step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
+                slot[3] -= 1
+                executed += 1
+        for i, slot in enumerate(slots):
+            if slot is None or slot[3] > 0:
+                continue
+            task, _, env, _ = slot
+            if pending and pending.has(task):
+                start(i, *pending.pop(task), env=env)
+                continue
+            _RAW_IDLE.setdefault(task, []).append(env)
+            slots[i] = None
+            if pending:
+                start(i, *pending.pop())
     return executed
 
 
@@ -156,18 +211,30 @@ def _pool(workers):
     return _RAW_POOL[workers]
 
 
-def run_raw(jobs, workers) -> float:
-    """``jobs``: (task, k, steps) triples, in the evaluator's order; returns env steps/s."""
+def run_raw(jobs, workers, batch=None) -> float:
+    """``jobs``: (task, k, steps) triples, in the evaluator's order; returns env steps/s.
+
+    ``batch``: run each shard on the evaluator's schedule with that many slots (``raw_interleaved_shard``);
+    ``None``: one env in a row (``raw_shard``).
+    """
     from tar_rl.collectors import tasks
 
     shards = _shards(jobs, workers)
+    run = raw_shard if batch is None else functools.partial(raw_interleaved_shard, batch=batch)
     start = time.perf_counter()
     if workers == 1:
-        steps = raw_shard(shards[0])
+        steps = run(shards[0])
     else:
         keys = [{(task, SEED + k // tasks.VARIATIONS_PER_SEED) for task, k, _ in sh} for sh in shards]
-        steps = sum(_pool(len(shards)).map(raw_shard, shards, [tasks.cached_variations(k) for k in keys]))
+        steps = sum(_pool(len(shards)).map(run, shards, [tasks.cached_variations(k) for k in keys]))
     return steps / (time.perf_counter() - start)
+
+
+def eval_batch(n_jobs, workers, horizon, envs_per_worker) -> int:
+    """The batch size ``evaluate`` gives each worker (its own rule, called here)."""
+    from tar_rl.collectors.evaluate import default_envs_per_worker
+
+    return envs_per_worker or default_envs_per_worker(math.ceil(n_jobs / workers), horizon)
 
 
 def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker) -> tuple[float, pd.DataFrame]:
@@ -223,30 +290,48 @@ def main(argv=None) -> pd.DataFrame:
     names = tasks.resolve_tasks(args.tasks)
     workers = args.workers or _cpu_count()
     policy = trained_policy(names, args.demos, args.train_steps, args.cache)
-    # The rows are deterministic: one untimed run fixes the steps of every rollout for the raw side
-    # (and builds the variations in this process, for both sides).
-    _, first = run_eval(policy, names, args.rollouts, args.horizon, 1, args.envs_per_worker)
-    steps = {(r.task, r.variation_index): int(r.steps) for r in first.itertuples()}
-    jobs = [(t, k, steps[(t, k)]) for t in names for k in range(args.rollouts)]
-    success, mean_steps = float(first["success"].mean()), float(first["steps"].mean())
-    print(f"policy: success {success:.2f}, {mean_steps:.0f} steps per rollout on average", flush=True)
     rows = []
     for section in args.sections.split(","):
         if section not in ("one_process", "all_cores"):
             raise ValueError(f"unknown section {section!r}: choose one_process and/or all_cores")
         w = 1 if section == "one_process" else workers
+        # The rows are deterministic for a given split into workers and batches (another split
+        # batches the policy's matmuls differently: last-bit differences): one untimed run per
+        # section fixes the steps of every rollout for the raw side (and builds the variations in
+        # this process, for both sides).
+        _, first = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
+        steps = {(r.task, r.variation_index): int(r.steps) for r in first.itertuples()}
+        jobs = [(t, k, steps[(t, k)]) for t in names for k in range(args.rollouts)]
+        success, mean_steps = float(first["success"].mean()), float(first["steps"].mean())
+        print(f"{section}: policy success {success:.2f}, {mean_steps:.0f} steps per rollout on average", flush=True)
+        batch = eval_batch(len(jobs), min(w, len(jobs)), args.horizon, args.envs_per_worker)
         for _ in range(0 if args.quick else args.warmup):
             run_raw(jobs, w)
+            run_raw(jobs, w, batch)
             run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
         for rep in range(args.reps):
             raw = run_raw(jobs, w)
+            raw_il = run_raw(jobs, w, batch)
             evl, df = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
-            if not df.equals(first):
-                raise RuntimeError(f"{section}: the evaluator's rows differ from the first run's")
-            rows.append({"section": section, "rep": rep, "raw_steps_per_s": raw, "eval_steps_per_s": evl})
-            rows[-1]["ratio"] = evl / raw
+            if not df[["steps", "success"]].equals(first[["steps", "success"]]):
+                raise RuntimeError(f"{section}: the evaluator's rollouts differ from the first run's")
+            rows.append(
+                {
+                    "section": section,
+                    "rep": rep,
+                    "raw_steps_per_s": raw,
+                    "eval_steps_per_s": evl,
+                    "ratio": evl / raw,
+                    "raw_interleaved_steps_per_s": raw_il,
+                    "ratio_interleaved": evl / raw_il,
+                    "success_rate": success,
+                    "mean_steps": mean_steps,
+                }
+            )
             print(
-                f"{section:12s} rep {rep}: raw {raw:8.0f}  eval {evl:8.0f} steps/s  ratio {evl / raw:.3f}", flush=True
+                f"{section:12s} rep {rep}: raw {raw:8.0f}  raw interleaved {raw_il:8.0f}  eval {evl:8.0f} steps/s  "
+                f"eval/raw {evl / raw:.3f}  eval/raw interleaved {evl / raw_il:.3f}",
+                flush=True,
             )
         sec = [r for r in rows if r["section"] == section and r["rep"] != "median"]
         rows.append(
@@ -256,9 +341,17 @@ def main(argv=None) -> pd.DataFrame:
                 "raw_steps_per_s": float(np.median([r["raw_steps_per_s"] for r in sec])),
                 "eval_steps_per_s": float(np.median([r["eval_steps_per_s"] for r in sec])),
                 "ratio": float(np.median([r["ratio"] for r in sec])),
+                "raw_interleaved_steps_per_s": float(np.median([r["raw_interleaved_steps_per_s"] for r in sec])),
+                "ratio_interleaved": float(np.median([r["ratio_interleaved"] for r in sec])),
+                "success_rate": success,
+                "mean_steps": mean_steps,
             }
         )
-        print(f"{section:12s} median ratio {rows[-1]['ratio']:.3f}", flush=True)
+        med = rows[-1]
+        print(
+            f"{section:12s} median eval/raw {med['ratio']:.3f}  eval/raw interleaved {med['ratio_interleaved']:.3f}",
+            flush=True,
+        )
     for r in rows:
         r.update(
             tasks=",".join(names),
@@ -266,8 +359,6 @@ def main(argv=None) -> pd.DataFrame:
             horizon=args.horizon,
             workers=workers if r["section"] == "all_cores" else 1,
             envs_per_worker=args.envs_per_worker or "default",
-            success_rate=success,
-            mean_steps=mean_steps,
             commit=git_commit(),
         )
     df = pd.DataFrame(rows, columns=COLUMNS)

@@ -295,21 +295,61 @@ def test_policy_training_mode_is_restored():
     assert policy.training
 
 
-@pytest.mark.slow
-def test_bench_eval_quick_writes_csv(tmp_path):
+def _bench_eval():
+    """benchmarks/bench_eval.py as the module ``bench_eval`` (registered: its workers pickle its functions by name)."""
     import importlib.util
+    import sys
     from pathlib import Path
 
+    if "bench_eval" in sys.modules:
+        return sys.modules["bench_eval"]
     path = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_eval.py"
     spec = importlib.util.spec_from_file_location("bench_eval", path)
     bench = importlib.util.module_from_spec(spec)
+    sys.modules["bench_eval"] = bench
     spec.loader.exec_module(bench)
+    return bench
+
+
+def test_bench_eval_interleaved_raw_side_runs_every_step(monkeypatch):
+    # The interleaved raw side must execute exactly the steps it is given, on the evaluator's
+    # schedule: 3 slots over 5 rollouts of 2 tasks; each env step and each reset is counted.
+    bench = _bench_eval()
+    counts = {"built": 0, "step": 0, "reset": 0}
+    real = tasks.make_env
+
+    def counting(name):
+        counts["built"] += 1
+        env = real(name)
+        step, reset = env.step, env.reset
+        env.step = lambda a: counts.__setitem__("step", counts["step"] + 1) or step(a)
+        env.reset = lambda *a, **k: counts.__setitem__("reset", counts["reset"] + 1) or reset(*a, **k)
+        return env
+
+    monkeypatch.setattr(tasks, "make_env", counting)
+    monkeypatch.setattr(bench, "_RAW_IDLE", {})
+    shard = [("reach-v3", 0, 4), ("reach-v3", 1, 1), ("reach-v3", 2, 7), ("drawer-close-v3", 0, 2), ("drawer-close-v3", 1, 3)]
+    assert bench.raw_interleaved_shard(shard, batch=3) == 17
+    # a finished slot whose task has rollouts left keeps its env: 3 envs for the 3 slots, kept for the next round
+    assert counts == {"built": 3, "step": 17, "reset": 5}
+    assert sum(map(len, bench._RAW_IDLE.values())) == 3
+
+
+@pytest.mark.slow
+def test_bench_eval_quick_writes_csv(tmp_path):
+    bench = _bench_eval()
     out = tmp_path / "eval.csv"
-    bench.main(["--quick", "--sections", "one_process", "--out", str(out), "--cache", str(tmp_path / "cache")])
+    # Both sections: all_cores splits the rollouts over 2 workers, whose batches differ from one
+    # process's (its rows may differ in the last bits of the returns, never in steps or success).
+    bench.main(["--quick", "--workers", "2", "--out", str(out), "--cache", str(tmp_path / "cache")])
     df = pd.read_csv(out)
     assert list(df.columns) == bench.COLUMNS
-    assert list(df["rep"].astype(str)) == ["0", "median"]
-    assert (df["ratio"] > 0).all() and (df["raw_steps_per_s"] > 0).all()
+    assert list(df["section"]) == ["one_process"] * 2 + ["all_cores"] * 2
+    assert list(df["rep"].astype(str)) == ["0", "median"] * 2
+    for col in ("raw_steps_per_s", "raw_interleaved_steps_per_s", "eval_steps_per_s"):
+        assert (df[col] > 0).all()
+    assert np.allclose(df["ratio"], df["eval_steps_per_s"] / df["raw_steps_per_s"])
+    assert np.allclose(df["ratio_interleaved"], df["eval_steps_per_s"] / df["raw_interleaved_steps_per_s"])
     assert df["success_rate"].between(0, 1).all() and (df["mean_steps"] >= 1).all()
     assert any((tmp_path / "cache").glob("mlp-*.pt"))  # the trained policy is cached
 
