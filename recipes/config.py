@@ -105,6 +105,12 @@ class DataConfig:
         image_size: ``S > 0`` also renders and stores ``[3, S, S]`` camera images (for
             ``policy.observation=image``; needs off-screen rendering, ``MUJOCO_GL=egl``); 0: none.
         workers: collection processes (default: every core).
+        path: an existing dataset folder to train on instead of collecting one: written by
+            ``tar-rl data import`` (robomimic / LIBERO HDF5) or a MetaWorld dataset of
+            ``data.root``. Its tasks, chunk horizon, history and image size are the dataset's
+            (``tasks``, ``n_demos``, ``seed``, ``chunk_horizon``, ``history`` and ``image_size``
+            above are then not used). Imported demonstrations have no simulator here: train them
+            with ``eval.rollouts=0``.
     """
 
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
@@ -117,6 +123,7 @@ class DataConfig:
     history: int = 2
     image_size: int = 0
     workers: int | None = None
+    path: str | None = None
 
 
 @dataclass
@@ -125,7 +132,8 @@ class EvalConfig:
 
     Attributes:
         tasks: tasks or groups to evaluate; empty: the training tasks.
-        rollouts: rollouts per task, each on a distinct variation (the paper: 50).
+        rollouts: rollouts per task, each on a distinct variation (the paper: 50); 0: no
+            evaluation (training only, e.g. on imported demonstrations).
         seed: base seed of the evaluation variations (the paper: 1000).
         horizon: step budget ``H`` per rollout (MetaWorld: at most 500).
         every: evaluate every this many training steps (0: only at the end). The final evaluation

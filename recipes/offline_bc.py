@@ -46,7 +46,7 @@ from tensordict.nn import TensorDictModuleBase
 from tar_rl import distributed
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
-from tar_rl.data import DemoDataset, build_dataset
+from tar_rl.data import DatasetError, DemoDataset, build_dataset, load_dataset
 from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
 from tar_rl.metrics import summarize
 from tar_rl.objectives import WEIGHTINGS, MixSchedule, TARLoss, window_weights
@@ -150,8 +150,16 @@ def validate(config: dict) -> dict:
     for key in ("start", "ramp"):
         if not 0 <= obj[key] <= 1:
             raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
-    train_tasks = _resolve_tasks("data.tasks", data["tasks"])
-    eval_tasks = _resolve_tasks("eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
+    given = _given_dataset(data["path"]) if data["path"] else None
+    train_tasks = tuple(given.tasks) if given is not None else _resolve_tasks("data.tasks", data["tasks"])
+    if given is not None and given.source != "metaworld" and ev["rollouts"]:
+        raise ConfigError(
+            f"data.path={data['path']} holds {given.source} demonstrations of {list(train_tasks)}, which have no "
+            "simulator here (evaluation runs MetaWorld): set eval.rollouts=0 to train without evaluation"
+        )
+    eval_tasks = ()
+    if ev["rollouts"]:
+        eval_tasks = _resolve_tasks("eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
     for name, value, low in (
         ("data.n_demos", data["n_demos"], 1),
         ("data.slice_len", data["slice_len"], 1),
@@ -159,7 +167,7 @@ def validate(config: dict) -> dict:
         ("data.chunk_horizon", data["chunk_horizon"], 1),
         ("data.history", data["history"], 1),
         ("data.image_size", data["image_size"], 0),
-        ("eval.rollouts", ev["rollouts"], 1),
+        ("eval.rollouts", ev["rollouts"], 0),
         ("eval.every", ev["every"], 0),
         ("optim.steps", opt["steps"], 1),
         ("optim.warmup", opt["warmup"], 0),
@@ -193,19 +201,25 @@ def validate(config: dict) -> dict:
         raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {opt['betas']}")
     _device(config["device"])
     # Demonstration and evaluation variations must never overlap (checked on the largest number
-    # of attempts collection may make, before collecting).
-    max_attempts = 3 * data["n_demos"] + 5
-    try:
-        mw_tasks.check_disjoint(
-            mw_tasks.variation_seeds(data["seed"], max_attempts), mw_tasks.variation_seeds(ev["seed"], ev["rollouts"])
-        )
-    except ValueError as err:
-        raise ConfigError(f"data.seed={data['seed']} and eval.seed={ev['seed']}: {err}") from None
-    # The objective and the head are built once on placeholder data so that their own checks run now.
+    # of attempts collection may make, before collecting; on a given dataset, on the seeds it used).
+    if ev["rollouts"]:
+        try:
+            if given is not None:
+                given.check_disjoint(ev["seed"], ev["rollouts"])
+            else:
+                demo_seeds = mw_tasks.variation_seeds(data["seed"], 3 * data["n_demos"] + 5)
+                mw_tasks.check_disjoint(demo_seeds, mw_tasks.variation_seeds(ev["seed"], ev["rollouts"]))
+        except ValueError as err:
+            where = f"data.path={data['path']}" if given is not None else f"data.seed={data['seed']}"
+            raise ConfigError(f"{where} and eval.seed={ev['seed']}: {err}") from None
+    # The objective and the head are built once on placeholder data (or the given dataset's
+    # description) so that their own checks run now.
     try:
         placeholder = DataInfo(
             chunk_horizon=data["chunk_horizon"], history=data["history"], image_size=data["image_size"]
         )
+        if given is not None:
+            placeholder = DataInfo.from_metadata(given.metadata)
         make_objective(config, make_policy(config, placeholder))
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
@@ -232,9 +246,19 @@ def _device(name: str, local_rank: int = 0) -> torch.device:
 # -- Builders ----------------------------------------------------------------------------------
 
 
+def _given_dataset(path: str) -> DemoDataset:
+    """The dataset folder of ``data.path``, opened (and checked: files, sizes, format)."""
+    try:
+        return load_dataset(path)
+    except DatasetError as err:
+        raise ConfigError(f"data.path={path}: {err}") from None
+
+
 def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> DemoDataset:
-    """The demonstration dataset (collected once, then loaded from ``data.root``)."""
+    """The demonstration dataset: ``data.path`` if given, else collected once, then loaded from ``data.root``."""
     data = config["data"]
+    if data["path"]:
+        return _given_dataset(data["path"])
     return build_dataset(
         data["root"],
         list(tasks),
@@ -365,7 +389,7 @@ def _demo_episodes(
     task_id = data["task_id"].numpy()
     out = []
     for task in tasks:
-        ids = np.unique(episode[task_id == mw_tasks.task_index(task)])[:per_task]
+        ids = np.unique(episode[task_id == dataset.metadata["task_ids"][task]])[:per_task]
         for e in ids:
             idx = np.flatnonzero(episode == e)
             td = data[int(idx[0]) : int(idx[-1]) + 1]
@@ -493,7 +517,8 @@ class Trainer:
         self.dataset = make_dataset(config, tasks["train"], progress=self.progress)
         if dist.main:
             dist.barrier()
-        self.dataset.check_disjoint(config["eval"]["seed"], config["eval"]["rollouts"])
+        if config["eval"]["rollouts"]:
+            self.dataset.check_disjoint(config["eval"]["seed"], config["eval"]["rollouts"])
         self.info = DataInfo.from_metadata(self.dataset.metadata)
         self.policy = make_policy(config, self.info)
         self.objective = make_objective(config, self.policy).to(self.device)
@@ -515,7 +540,10 @@ class Trainer:
         )
         share = data_cfg["batch_segments"] // dist.world
         self.rows = slice(dist.rank * share, (dist.rank + 1) * share)
-        self.evaluator = make_evaluator(config, tasks["eval"], progress=self.progress, shard=(dist.rank, dist.world))
+        self.evaluator = None  # eval.rollouts=0: training only
+        if config["eval"]["rollouts"]:
+            shard = (dist.rank, dist.world)
+            self.evaluator = make_evaluator(config, tasks["eval"], progress=self.progress, shard=shard)
         self.steps = self.opt_cfg["steps"]
         self.record_at = (
             {self.steps if s == -1 else s for s in self.log_cfg["record_weights_at"]} if dist.main else set()
@@ -621,7 +649,12 @@ class Trainer:
     # -- evaluation and weights ------------------------------------------------------------
 
     def evaluate(self, step: int) -> pd.DataFrame | None:
-        """Run the evaluator (sharded over ranks); rank 0 logs and returns the summary table."""
+        """Run the evaluator (sharded over ranks); rank 0 logs and returns the summary table.
+
+        ``None`` on the other ranks, and everywhere when evaluation is off (``eval.rollouts=0``).
+        """
+        if self.evaluator is None:
+            return None
         ema = self.ema if self.config["eval"]["use_ema"] else None
         rollouts = self.evaluator(_eval_actor(self.policy.actor, ema))
         if self.dist.active:
@@ -698,7 +731,7 @@ class Trainer:
             (step, "train", "skipped", float(self.skipped)),
         ]
 
-    def write_summary(self, table: pd.DataFrame) -> None:
+    def write_summary(self, table: pd.DataFrame | None) -> None:
         config = self.config
         summary = {
             "run_name": self.run_dir.name,
@@ -709,7 +742,9 @@ class Trainer:
             "finished": True,
             "final": [
                 {**rec, "neps": json_metric(rec["neps"])} for rec in table[table["level"] != "task"].to_dict("records")
-            ],
+            ]
+            if table is not None
+            else [],  # eval.rollouts=0: not evaluated
             "final_train_loss": last_metric(self.logs.metrics, "loss"),
             "nonfinite_steps_skipped": self.skipped,
             "train_seconds": self.train_seconds,
@@ -778,8 +813,11 @@ def train(cfg: Any) -> Path:
         if dist.main:
             trainer.write_summary(table)
             rollouts = config["eval"]["rollouts"]
-            print(f"\n{run_dir}: {trainer.steps} steps, final evaluation ({rollouts} rollouts per task):")
-            print_table(table)
+            if table is None:
+                print(f"\n{run_dir}: {trainer.steps} steps; not evaluated (eval.rollouts=0)")
+            else:
+                print(f"\n{run_dir}: {trainer.steps} steps, final evaluation ({rollouts} rollouts per task):")
+                print_table(table)
         del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()
         return run_dir

@@ -719,8 +719,13 @@ class DemoDataset:
 
     @property
     def tasks(self) -> list[str]:
-        """The dataset's task names, in task-id order."""
+        """The dataset's task names (MetaWorld's are in ``TASKS`` order; an imported dataset's in task-id order)."""
         return list(self.metadata["tasks"])
+
+    @property
+    def source(self) -> str:
+        """Where the demonstrations come from: ``metaworld`` (collected here) or the importer's name."""
+        return self.metadata.get("source", "metaworld")
 
     def segments(
         self,

@@ -58,14 +58,23 @@ NOT_IDENTITY = (
 )
 
 
+# Settings added after runs were made, with the value that computes what runs made before them
+# computed: at that value they are left out of the identity, so earlier runs keep their names and
+# stay resumable.
+ADDED_LATER = ((("data", "path"), None),)
+
+
 def identity(config: dict) -> dict:
-    """The settings that determine what a run computes: ``config`` without :data:`NOT_IDENTITY`."""
+    """The settings that determine what a run computes: ``config`` without :data:`NOT_IDENTITY`
+    (and without the :data:`ADDED_LATER` settings left at their neutral value)."""
     ident = copy.deepcopy(config)
-    for path in NOT_IDENTITY:
+    drops = [(path, None) for path in NOT_IDENTITY] + list(ADDED_LATER)
+    for path, neutral in drops:
         node = ident
         for key in path[:-1]:
             node = node.get(key, {})
-        node.pop(path[-1], None)
+        if path in NOT_IDENTITY or (path[-1] in node and node[path[-1]] == neutral):
+            node.pop(path[-1], None)
     return ident
 
 

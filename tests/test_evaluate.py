@@ -328,7 +328,8 @@ def test_bench_eval_interleaved_raw_side_runs_every_step(monkeypatch):
 
     monkeypatch.setattr(tasks, "make_env", counting)
     monkeypatch.setattr(bench, "_RAW_IDLE", {})
-    shard = [("reach-v3", 0, 4), ("reach-v3", 1, 1), ("reach-v3", 2, 7), ("drawer-close-v3", 0, 2), ("drawer-close-v3", 1, 3)]
+    reach, drawer = "reach-v3", "drawer-close-v3"
+    shard = [(reach, 0, 4), (reach, 1, 1), (reach, 2, 7), (drawer, 0, 2), (drawer, 1, 3)]
     assert bench.raw_interleaved_shard(shard, batch=3) == 17
     # a finished slot whose task has rollouts left keeps its env: 3 envs for the 3 slots, kept for the next round
     assert counts == {"built": 3, "step": 17, "reset": 5}

@@ -323,3 +323,84 @@ def test_failure_while_writing_leaves_no_dataset(h5file, tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         import_robomimic(path, KEYS, out=out, verbose=False)
     assert list(out.iterdir()) == []  # neither the dataset folder nor its temporary sibling
+
+
+# -- Training on an imported dataset (``data.path``) -------------------------------------------
+
+
+def _two_task_dataset(tmp_path, instructions=False):
+    """Two files, two tasks: robomimic's Lift (no instruction) and a LIBERO problem (with one)."""
+    libero = {"problem_name": "open_the_drawer", "language_instruction": "open the top drawer"}
+    lift_info = {"problem_name": "lift_the_cube", "language_instruction": "lift the cube"} if instructions else None
+    a = _write(tmp_path / "lift.hdf5", _demos(0), problem_info=lift_info)
+    b = _write(tmp_path / "drawer.hdf5", _demos(1), problem_info=libero)
+    return import_robomimic([a, b], KEYS, out=tmp_path / "data", chunk_horizon=H, history=K, verbose=False)
+
+
+def _train_config(tmp_path, ds, *overrides):
+    from recipe_helpers import compose_config
+
+    return compose_config(
+        f"data.path={ds.path}",
+        "data.batch_segments=4",
+        "data.slice_len=3",
+        "policy.hidden=[16]",
+        "optim.steps=6",
+        "optim.warmup=1",
+        "logging.every=2",
+        "logging.checkpoint_every=4",
+        "logging.progress=false",
+        "logging.record_weights_at=[-1]",
+        "eval.rollouts=0",
+        f"runs_root={tmp_path / 'runs'}",
+        *overrides,
+    )
+
+
+def test_train_on_imported_dataset_without_evaluation(tmp_path):
+    from tar_rl.recipes.offline_bc import train
+    from tar_rl.runs import load_checkpoint
+
+    ds = _two_task_dataset(tmp_path)
+    assert ds.tasks == ["Lift", "open_the_drawer"]
+    run = train(_train_config(tmp_path, ds))
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["finished"] and summary["final"] == [] and summary["steps"] == 6
+    metrics = (run / "metrics.csv").read_text()
+    assert "train,loss," in metrics and ",eval," not in metrics
+    assert not (run / "eval_rollouts.csv").exists() or (run / "eval_rollouts.csv").read_text().count("\n") <= 1
+    # the head was built on the dataset's own sizes and task ids: 7-d observations (object 4 +
+    # eef_pos 3), 7-d actions, 2 task ids (an embedding of 2 rows, not MetaWorld's 50)
+    state = load_checkpoint(run / "checkpoint.pt")
+    info = DataInfo.from_dict(state["data_info"])
+    assert (info.obs_dim, info.action_dim, info.n_tasks) == (7, 7, 2)
+    assert info.instructions == ("", "open the top drawer")
+    assert state["policy"]["module.task_embedding.weight"].shape == (2, 32)
+    # Fig. 5's weights were recorded along demonstrations of both imported tasks
+    weights = (run / "weights.csv").read_text()
+    assert ",Lift," in weights and ",open_the_drawer," in weights
+
+
+def test_imported_dataset_with_instructions_trains_instruction_conditioning(tmp_path):
+    from tar_rl.recipes.offline_bc import train
+
+    ds = _two_task_dataset(tmp_path, instructions=True)
+    run = train(_train_config(tmp_path, ds, "policy.task_conditioning=instruction"))
+    assert json.loads((run / "summary.json").read_text())["finished"]
+
+
+def test_data_path_bad_settings_are_refused_before_work(tmp_path):
+    from tar_rl.recipes.offline_bc import ConfigError, train
+
+    ds = _two_task_dataset(tmp_path)
+    refused = r"robomimic demonstrations of \['Lift', 'open_the_drawer'\].*eval\.rollouts=0"
+    with pytest.raises(ConfigError, match=refused):
+        train(_train_config(tmp_path, ds, "eval.rollouts=2"))
+    with pytest.raises(ConfigError, match=r"task ids \[0\] have no instruction text"):
+        train(_train_config(tmp_path, ds, "policy.task_conditioning=instruction"))
+    with pytest.raises(ConfigError, match=r"data\.path=.*nowhere.*no dataset folder"):
+        train(_train_config(tmp_path, ds, f"data.path={tmp_path / 'nowhere'}"))
+    (ds.path / "metadata.json").unlink()  # an unfinished folder
+    with pytest.raises(ConfigError, match=r"data\.path=.*metadata\.json is missing"):
+        train(_train_config(tmp_path, ds))
+    assert not (tmp_path / "runs").exists()  # nothing started

@@ -546,3 +546,19 @@ def test_slurm_launcher_example_composes(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert "SlurmLauncher" in out.stdout and "partition: gpu" in out.stdout
+
+
+def test_settings_added_later_keep_earlier_run_names():
+    # data.path came after many runs were made: a config without it (saved before) and one with its
+    # neutral value (None) are the same run, so those runs keep their directory names and resume.
+    import copy
+
+    from tar_rl.runs import config_differences, identity, run_name
+
+    cfg = compose_config()
+    old = copy.deepcopy(cfg)
+    del old["data"]["path"]
+    assert cfg["data"]["path"] is None
+    assert run_name(cfg) == run_name(old)
+    assert config_differences(identity(old), identity(cfg)) == []
+    assert run_name(compose_config("data.path=/some/dataset")) != run_name(cfg)

@@ -60,6 +60,9 @@ class DataInfo:
         chunk_horizon: the dataset's ``action_chunk`` horizon ``H``.
         history: the dataset's ``observation_history`` window ``K``.
         image_size: the side ``S`` of the dataset's ``pixels`` (0: a state-only dataset).
+        instructions: the instruction text of each task id, for datasets whose task ids are
+            their own (imported ones: ``""`` where the dataset has none); ``None``: MetaWorld's
+            ids and instructions (``tar_rl.collectors.tasks``).
     """
 
     obs_dim: int = 39
@@ -70,12 +73,23 @@ class DataInfo:
     chunk_horizon: int = 1
     history: int = 1
     image_size: int = 0
+    instructions: tuple[str, ...] | None = None
 
     @classmethod
     def from_metadata(cls, metadata: dict) -> DataInfo:
-        """Read the dimensions and observation statistics from a dataset's ``metadata.json``."""
+        """Read the dimensions, observation statistics and task ids from a dataset's ``metadata.json``.
+
+        A MetaWorld dataset uses MetaWorld's 50 global task ids; an imported one (``source`` in its
+        metadata) numbers its own tasks 0..n-1 and brings their instructions if it has any.
+        """
         stats = metadata["stats"]["observation"]
+        own = {}
+        if metadata.get("source", "metaworld") != "metaworld":
+            names = list(metadata["tasks"])
+            texts = metadata.get("instructions") or {}
+            own = {"n_tasks": len(names), "instructions": tuple(texts.get(t) or "" for t in names)}
         return cls(
+            **own,
             obs_dim=len(stats["mean"]),
             action_dim=len(metadata["stats"]["action"]["mean"]),
             obs_mean=tuple(stats["mean"]),

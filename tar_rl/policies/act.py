@@ -156,7 +156,7 @@ class ACTModel(nn.Module):
         # Policy: [z, obs, task] -> encoder -> H queries -> decoder -> actions
         self.latent_in = nn.Linear(cfg.latent_dim, d)
         self.obs_in = nn.Linear(info.obs_dim, d)
-        self.task = TaskEncoder(cfg.task_conditioning, info.n_tasks, d)
+        self.task = TaskEncoder(cfg.task_conditioning, info.n_tasks, d, info.instructions)
         self.token_pos = nn.Parameter(torch.randn(3, d) * 0.02)
         self.encoder = layers(nn.TransformerEncoderLayer, cfg.enc_layers)
         self.queries = nn.Parameter(torch.randn(self.horizon, d) * 0.02)

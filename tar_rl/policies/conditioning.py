@@ -1,12 +1,13 @@
 """Task conditioning shared by the heads: a learned task embedding or an instruction-text embedding.
 
-``TaskEncoder(kind, n_tasks, dim)`` maps ``task_id`` (``[...]`` int64, the index in
-``tar_rl.collectors.tasks.TASKS``) to ``[..., dim]``:
+``TaskEncoder(kind, n_tasks, dim, instructions=None)`` maps ``task_id`` (``[...]`` int64, the
+index in ``tar_rl.collectors.tasks.TASKS``, or an imported dataset's own ids with their
+``instructions``) to ``[..., dim]``:
 
 * ``embedding``: one learned vector per task id (the default of every head);
-* ``instruction``: the task's instruction sentence (``tasks.INSTRUCTIONS``, one per task) as a
-  bag of words: lower-cased words (runs of letters and digits), a learned vector per word of the
-  50 instructions' vocabulary, mean-pooled, then a linear layer. Tasks that share words share
+* ``instruction``: the task's instruction sentence (``tasks.INSTRUCTIONS``, one per task, or the
+  dataset's) as a bag of words: lower-cased words (runs of letters and digits), a learned vector
+  per word of the instructions' vocabulary, mean-pooled, then a linear layer. Tasks that share words share
   parameters, so related tasks ("Push the puck ...", "Push the puck to the goal ...") start close.
   No pretrained language model is used: nothing can be downloaded at run time here, and the paper's language encoders
   are part of the pretrained policies it fine-tunes.
@@ -15,6 +16,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -26,10 +28,26 @@ __all__ = ["TASK_CONDITIONING", "TaskEncoder", "instruction_tokens"]
 TASK_CONDITIONING = ("embedding", "instruction")
 
 
-def instruction_tokens(n_tasks: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+def instruction_tokens(
+    n_tasks: int, instructions: Sequence[str] | None = None
+) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Word ids ``[n_tasks, W]`` of each task's instruction (padded with 0), their ``[n_tasks, W]`` mask,
-    and the vocabulary size (id 0 is padding)."""
-    text = [INSTRUCTIONS[TASKS[i]].lower() if i < len(TASKS) else "" for i in range(n_tasks)]
+    and the vocabulary size (id 0 is padding).
+
+    ``instructions``: the text of each task id (a dataset with its own task ids); ``None``:
+    MetaWorld's (``tasks.INSTRUCTIONS`` in ``TASKS`` order). Every task needs a text.
+    """
+    if instructions is None:
+        instructions = [INSTRUCTIONS[TASKS[i]] if i < len(TASKS) else "" for i in range(n_tasks)]
+    if len(instructions) != n_tasks:
+        raise ValueError(f"{len(instructions)} instructions for {n_tasks} task ids")
+    missing = [i for i, t in enumerate(instructions) if not t or not t.strip()]
+    if missing:
+        raise ValueError(
+            f"task ids {missing} have no instruction text, which policy.task_conditioning=instruction needs "
+            "(an imported dataset without instructions: use task_conditioning=embedding)"
+        )
+    text = [t.lower() for t in instructions]
     sentences = [re.findall(r"[a-z0-9]+", t) for t in text]
     vocab = {w: j + 1 for j, w in enumerate(sorted({w for s in sentences for w in s}))}
     width = max(1, max(len(s) for s in sentences))
@@ -42,7 +60,7 @@ def instruction_tokens(n_tasks: int) -> tuple[torch.Tensor, torch.Tensor, int]:
 class TaskEncoder(nn.Module):
     """``task_id [...] -> [..., dim]`` by a learned embedding or the instruction's words (module docstring)."""
 
-    def __init__(self, kind: str, n_tasks: int, dim: int):
+    def __init__(self, kind: str, n_tasks: int, dim: int, instructions: Sequence[str] | None = None):
         super().__init__()
         if kind not in TASK_CONDITIONING:
             raise ValueError(f"policy.task_conditioning must be one of {list(TASK_CONDITIONING)}, got {kind!r}")
@@ -52,7 +70,7 @@ class TaskEncoder(nn.Module):
         if kind == "embedding":
             self.embedding = nn.Embedding(n_tasks, dim)
         else:
-            ids, mask, vocab = instruction_tokens(n_tasks)
+            ids, mask, vocab = instruction_tokens(n_tasks, instructions)
             self.register_buffer("word_ids", ids, persistent=False)
             self.register_buffer("word_mask", mask, persistent=False)
             self.words = nn.Embedding(vocab, dim, padding_idx=0)

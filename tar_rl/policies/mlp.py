@@ -102,7 +102,7 @@ class MLPPolicy(nn.Module):
         if self.conditioning == "embedding":  # a plain nn.Embedding keeps earlier checkpoints' state-dict keys
             self.task_embedding = nn.Embedding(info.n_tasks, cfg.task_dim)
         elif self.conditioning == "instruction":
-            self.task_embedding = TaskEncoder("instruction", info.n_tasks, cfg.task_dim)
+            self.task_embedding = TaskEncoder("instruction", info.n_tasks, cfg.task_dim, info.instructions)
         layers: list[nn.Module] = []
         state_width = PROPRIO_DIMS + cfg.image_dim if self.image is not None else info.obs_dim
         width = state_width + task_width

@@ -203,7 +203,7 @@ class OctoBackbone(nn.Module):
         self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std) if cfg.normalize_obs else nn.Identity()
         self.obs_proj = nn.Linear(info.obs_dim, self.dim)
         self.time_pos = nn.Parameter(torch.randn(self.history, self.dim) * 0.02)
-        self.task = TaskEncoder(cfg.task_conditioning, info.n_tasks, self.dim)
+        self.task = TaskEncoder(cfg.task_conditioning, info.n_tasks, self.dim, info.instructions)
         self.readout = nn.Parameter(torch.randn(int(cfg.readouts), self.dim) * 0.02)
         self.blocks = nn.ModuleList(TransformerBlock(self.dim, int(cfg.heads), cfg.dropout) for _ in range(cfg.layers))
         self.out_norm = nn.LayerNorm(self.dim)
