@@ -35,25 +35,18 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from tar_rl import data as _data
+from tar_rl.importers.common import ACTION_RANGE, DemoImportError, check_action_range, fingerprint, import_folder
 
 __all__ = ["ACTION_RANGE", "NAME_PREFIX", "DemoImportError", "import_robomimic"]
 
 NAME_PREFIX = "robomimic-"
-ACTION_RANGE = (-1.0, 1.0)
 ACTION_TARGET = "the stored action (declared range [-1, 1]); clipped to it only with clip=True; action_raw as stored"
-
-
-class DemoImportError(ValueError):
-    """A demonstration file cannot be imported (the message names the file, demo and key)."""
 
 
 def _natural_key(name: str) -> tuple:
@@ -152,25 +145,17 @@ def _read_file(path: Path, keys: list[str], filter_key: str | None, clip: bool) 
                 next_obs = np.concatenate([obs[1:], obs[-1:]])
             dones = _read_array(demo, "dones", where, n)[:, 0] != 0 if "dones" in demo else np.zeros(n, bool)
             rewards = _read_array(demo, "rewards", where, n)[:, 0] if "rewards" in demo else np.zeros(n)
-            lo, hi = ACTION_RANGE
-            outside = (actions < lo) | (actions > hi)
-            if outside.any() and not clip:
-                t, j = (int(i) for i in np.argwhere(outside)[0])
-                raise DemoImportError(
-                    f"{where}: key 'actions' leaves the declared range [{lo:g}, {hi:g}] "
-                    f"({outside.sum()} entries, first at step {t}, dim {j}: {actions[t, j]:.6g}); pass clip=True "
-                    "(--clip) to clip them"
-                )
+            target, clipped = check_action_range(actions, where, "actions", clip)
             demos.append(
                 {
                     "name": name,
                     "observation": obs.astype(np.float32),
                     "next_observation": next_obs.astype(np.float32),
                     "action_raw": actions,
-                    "action": np.clip(actions, lo, hi),
+                    "action": target,
                     "reward": rewards.astype(np.float32),
                     "terminated": dones,
-                    "clipped": int(outside.sum()),
+                    "clipped": clipped,
                 }
             )
         dims = [int(np.prod(group[names[0]]["obs"][k].shape[1:], dtype=np.int64)) for k in keys]
@@ -194,11 +179,6 @@ def _read_file(path: Path, keys: list[str], filter_key: str | None, clip: bool) 
         "dims": dims,
         "width": widths.pop(),
     }
-
-
-def _fingerprint(path: Path) -> dict:
-    st = path.stat()
-    return {"path": str(path.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
 def import_robomimic(
@@ -247,7 +227,6 @@ def import_robomimic(
     if filter_key is not None and not str(filter_key):
         raise DemoImportError("filter_key is empty: give a filter name (e.g. 'train') or None for every demo")
 
-    start = time.perf_counter()
     sources = [_read_file(p, keys, filter_key, bool(clip)) for p in files]  # everything checked before writing
     widths = {s["width"] for s in sources}
     if len(widths) != 1:
@@ -258,7 +237,7 @@ def import_robomimic(
 
     settings = {
         "source": "robomimic",
-        "files": [_fingerprint(p) for p in files],
+        "files": [fingerprint(p) for p in files],
         "obs_keys": keys,
         "filter": filter_key,
         "chunk_horizon": chunk_horizon,
@@ -266,86 +245,24 @@ def import_robomimic(
         "clip": bool(clip),
         "format_version": _data.FORMAT_VERSION,
     }
-    key = _data.cache_key(settings)
-    name = f"{NAME_PREFIX}{files[0].stem}-{key}"
-    root = Path(out)
-    final = root / name
-    root.mkdir(parents=True, exist_ok=True)
-    _data._clean_temp_siblings(root, name)
-    if final.exists():
-        try:
-            found = _data.load_dataset(final)
-            if found.metadata.get("settings") == settings:
-                if verbose:
-                    print(f"already imported: {final}")
-                return found
-            raise _data.DatasetError("its metadata describes other settings")
-        except _data.DatasetError as err:
-            print(f"dataset {final} is incomplete or stale ({err}); removing it and importing again")
-            shutil.rmtree(final)
 
-    tasks: list[str] = []
-    for s in sources:
-        if s["task"] not in tasks:
-            tasks.append(s["task"])
-    episodes = [(s, d) for s in sources for d in s["demos"]]
-    lengths = np.array([len(d["action"]) for _, d in episodes], dtype=np.int64)
-    ends = np.cumsum(lengths) - 1
-    truncated = np.zeros(int(lengths.sum()), dtype=bool)
-    cat = {k: np.concatenate([d[k] for _, d in episodes]) for k in episodes[0][1] if k not in ("name", "clipped")}
-    truncated[ends] = ~cat["terminated"][ends]
-    task_id = np.concatenate([np.full(len(d["action"]), tasks.index(s["task"]), np.int64) for s, d in episodes])
-    data = _data.steps_tensordict(
-        observation=cat["observation"],
-        action=cat["action"],
-        action_raw=cat["action_raw"],
-        next_observation=cat["next_observation"],
-        reward=cat["reward"],
-        terminated=cat["terminated"],
-        truncated=truncated,
-        lengths=lengths,
-        task_id=task_id,
-        horizon=chunk_horizon,
-        history=history,
-    )
-    metadata = _metadata(settings, key, keys, sources, tasks, data, lengths, time.perf_counter() - start)
-    path = _data.write_dataset(root, name, data, metadata)
-    dataset = _data.load_dataset(path)
-    if verbose:
-        print(
-            f"imported {len(episodes)} episodes, {len(data)} steps, {len(tasks)} task(s) from "
-            f"{len(files)} file(s) into {path}"
-        )
-    return dataset
+    def episodes() -> tuple[list[dict], dict]:
+        eps = [{**d, "task": s["task"]} for s in sources for d in s["demos"]]
+        return eps, _metadata(settings, keys, sources)
+
+    return import_folder(out, NAME_PREFIX, files[0].stem, settings, episodes, verbose)
 
 
-def _metadata(settings, key, keys, sources, tasks, data, lengths, secs) -> dict:
-    import tar_rl
-
+def _metadata(settings, keys, sources) -> dict:
+    """The metadata entries particular to robomimic files (the common ones: ``importers.common``)."""
     dims = sources[0]["dims"]
     offsets = np.concatenate([[0], np.cumsum(dims)]).tolist()
-    per_task = {}
-    for t, task in enumerate(tasks):
-        mine = [s for s in sources if s["task"] == task]
-        demo_lengths = [len(d["action"]) for s in mine for d in s["demos"]]
-        per_task[task] = {
-            "task_id": t,
-            "instruction": next((s["instruction"] for s in mine if s["instruction"]), None),
-            "episodes": len(demo_lengths),
-            "kept": len(demo_lengths),
-            "steps": int(sum(demo_lengths)),
-            "episode_lengths": demo_lengths,
-            "files": [str(s["path"]) for s in mine],
-        }
+    tasks = list(dict.fromkeys(s["task"] for s in sources))
     return {
-        "format_version": _data.FORMAT_VERSION,
-        "source": "robomimic",
-        "cache_key": key,
-        "settings": settings,
-        "tasks": tasks,
-        "task_ids": {task: p["task_id"] for task, p in per_task.items()},
-        "instructions": {task: p["instruction"] for task, p in per_task.items()},
-        "per_task": per_task,
+        "instructions": {
+            t: next((s["instruction"] for s in sources if s["task"] == t and s["instruction"]), None) for t in tasks
+        },
+        "per_task": {t: {"files": [str(s["path"]) for s in sources if s["task"] == t]} for t in tasks},
         "sources": [
             {
                 "path": str(s["path"].resolve()),
@@ -363,26 +280,6 @@ def _metadata(settings, key, keys, sources, tasks, data, lengths, secs) -> dict:
         "obs_keys": [
             {"key": k, "dim": d, "slice": [offsets[i], offsets[i + 1]]} for i, (k, d) in enumerate(zip(keys, dims))
         ],
-        "total_steps": int(data.shape[0]),
-        "total_episodes": len(lengths),
-        "chunk_horizon": settings["chunk_horizon"],
-        "history": settings["history"],
-        "image_size": 0,
-        "action_range": list(ACTION_RANGE),
         "action_target": ACTION_TARGET,
-        "stats": {
-            "observation": _data._stats(data["observation"].numpy()),
-            "action": _data._stats(data["action"].numpy()),
-            "action_raw": _data._stats(data["action_raw"].numpy()),
-        },
-        "versions": {
-            "tar_rl": tar_rl.__version__,
-            "torch": torch.__version__,
-            "torchrl": _data._version("torchrl"),
-            "tensordict": _data._version("tensordict"),
-            "h5py": _data._version("h5py"),
-            "numpy": np.__version__,
-        },
-        "import_seconds": secs,
-        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "versions": {"h5py": _data._version("h5py")},
     }
