@@ -7,7 +7,8 @@ Sub-commands:
 * ``tar-rl eval CHECKPOINT``: evaluate a saved policy on MetaWorld.
 * ``tar-rl report RUN_DIR...``: compare finished runs (tables and figures).
 * ``tar-rl data import robomimic FILE... --obs-keys a,b,c``: robomimic/LIBERO HDF5 demonstrations into a
-  dataset folder; ``tar-rl data info PATH``: a dataset folder's episodes, steps, entries and tasks.
+  dataset folder; ``tar-rl data import lerobot FOLDER``: a LeRobot dataset on local disk;
+  ``tar-rl data info PATH``: a dataset folder's episodes, steps, entries and tasks.
 * ``tar-rl demo``: a short demonstration of the objective on toy data.
 """
 
@@ -45,10 +46,19 @@ def _parser() -> argparse.ArgumentParser:
         help="obs/<key> entries to concatenate, in order (e.g. robot0_eef_pos,robot0_eef_quat,object)",
     )
     rm.add_argument("--filter", help="import only the demos of mask/<FILTER> (e.g. train); default: every demo")
-    rm.add_argument("--out", default="data", help="folder holding datasets (default: data)")
-    rm.add_argument("--chunk-horizon", type=int, default=8, help="H of action_chunk (default 8)")
-    rm.add_argument("--history", type=int, default=2, help="K of observation_history (default 2)")
-    rm.add_argument("--clip", action="store_true", help="clip actions outside [-1, 1] instead of refusing them")
+    lr = formats.add_parser("lerobot", help="a LeRobot dataset on local disk (v3.x / v2.x, or TorchRL's copy of one)")
+    lr.add_argument("folder", help="the dataset folder (meta/info.json, data/), or TorchRL's converted copy")
+    lr.add_argument(
+        "--obs-keys",
+        default="observation.state",
+        help="state columns to concatenate, in order (default: observation.state)",
+    )
+    lr.add_argument("--action-key", default="action", help="the action column (default: action)")
+    for p in (rm, lr):  # what every import takes
+        p.add_argument("--out", default="data", help="folder holding datasets (default: data)")
+        p.add_argument("--chunk-horizon", type=int, default=8, help="H of action_chunk (default 8)")
+        p.add_argument("--history", type=int, default=2, help="K of observation_history (default 2)")
+        p.add_argument("--clip", action="store_true", help="clip actions outside [-1, 1] instead of refusing them")
     info = data_commands.add_parser("info", help="episodes, steps, entries, action range and tasks of a dataset")
     info.add_argument("path", help="a dataset folder (holding metadata.json and buffer/)")
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
@@ -108,20 +118,16 @@ def main(argv: list[str] | None = None) -> int:
 
 def _data_command(args: argparse.Namespace) -> int:
     if args.data_command == "import":
-        from tar_rl.importers import DemoImportError, import_robomimic
+        from tar_rl.importers import DemoImportError, import_lerobot, import_robomimic
 
+        common = {"out": args.out, "chunk_horizon": args.chunk_horizon, "history": args.history, "clip": args.clip}
         try:
-            import_robomimic(
-                args.files,
-                args.obs_keys,
-                filter_key=args.filter,
-                out=args.out,
-                chunk_horizon=args.chunk_horizon,
-                history=args.history,
-                clip=args.clip,
-            )
+            if args.format == "robomimic":
+                import_robomimic(args.files, args.obs_keys, filter_key=args.filter, **common)
+            else:
+                import_lerobot(args.folder, args.obs_keys, action_key=args.action_key, **common)
         except DemoImportError as err:
-            raise SystemExit(f"tar-rl data import robomimic: {err}") from None
+            raise SystemExit(f"tar-rl data import {args.format}: {err}") from None
         return 0
     import json
 
