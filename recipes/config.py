@@ -111,6 +111,10 @@ class DataConfig:
             (``tasks``, ``n_demos``, ``seed``, ``chunk_horizon``, ``history`` and ``image_size``
             above are then not used). Imported demonstrations have no simulator here: train them
             with ``eval.rollouts=0``.
+        suite: the simulator demonstrations are collected in and policies evaluated on:
+            ``metaworld`` or ``dm_control`` (``point_mass-easy``, ``reacher-easy`` or the group
+            ``dm_control`` in ``tasks``; scripted experts, see ``tar_rl.collectors.dmc``). A
+            ``data.path`` dataset brings its own.
     """
 
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
@@ -124,6 +128,7 @@ class DataConfig:
     image_size: int = 0
     workers: int | None = None
     path: str | None = None
+    suite: str = "metaworld"
 
 
 @dataclass

@@ -44,6 +44,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed
+from tar_rl.collectors import dmc
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
 from tar_rl.data import DatasetError, DemoDataset, build_dataset, load_dataset
@@ -127,13 +128,124 @@ def _check_choice(name: str, value, choices: Sequence[str]) -> None:
         raise ConfigError(f"{name}={value!r} is not valid; choose one of {list(choices)}")
 
 
-def _resolve_tasks(name: str, spec: list[str]) -> tuple[str, ...]:
+def _resolve_tasks(suite: Suite, name: str, spec: list[str]) -> tuple[str, ...]:
     if not spec:
         raise ConfigError(f"{name} is empty: name at least one task or group")
     try:
-        return tuple(mw_tasks.resolve_tasks(list(spec)))
+        return tuple(suite.resolve(list(spec)))
     except ValueError as err:
         raise ConfigError(f"{name}: {err}") from None
+
+
+# -- Suites: the simulators demonstrations are collected in and policies evaluated on ------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Suite:
+    """What the recipe needs of a simulator suite (``data.suite``); each callable takes the resolved config.
+
+    Attributes:
+        resolve: task and group names -> task names (``ValueError`` naming the valid ones).
+        max_horizon: the largest ``eval.horizon``.
+        check_seeds: ``(config)``: raise ``ValueError`` if the demonstrations' seeds may meet the evaluation's.
+        check_dataset: ``(dataset, eval_seed, rollouts)``: the same for a dataset already collected.
+        build_dataset: ``(config, tasks, progress)`` -> the demonstration dataset (collected once, cached).
+        evaluate: ``(config, actor, tasks, progress, shard)`` -> one row per rollout (``evaluate.COLUMNS``).
+        images: whether ``data.image_size > 0`` is supported.
+    """
+
+    resolve: Callable[[list[str]], list[str]]
+    max_horizon: int
+    check_seeds: Callable[[dict], None]
+    check_dataset: Callable[[DemoDataset, int, int], None]
+    build_dataset: Callable[[dict, Sequence[str], bool], DemoDataset]
+    evaluate: Callable[..., pd.DataFrame]
+    images: bool
+
+
+def _metaworld_seeds(config: dict) -> None:
+    data, ev = config["data"], config["eval"]
+    demo_seeds = mw_tasks.variation_seeds(data["seed"], 3 * data["n_demos"] + 5)  # the most collection may try
+    mw_tasks.check_disjoint(demo_seeds, mw_tasks.variation_seeds(ev["seed"], ev["rollouts"]))
+
+
+def _metaworld_dataset(config: dict, tasks: Sequence[str], progress: bool) -> DemoDataset:
+    data = config["data"]
+    return build_dataset(
+        data["root"],
+        list(tasks),
+        n_demos=data["n_demos"],
+        seed=data["seed"],
+        chunk_horizon=data["chunk_horizon"],
+        history=data["history"],
+        image_size=data["image_size"],
+        workers=data["workers"],
+        progress=progress,
+    )
+
+
+def _metaworld_evaluate(config, actor, tasks, progress, shard) -> pd.DataFrame:
+    ev = config["eval"]
+    workers = ev["workers"]
+    if workers is None and shard[1] > 1:
+        workers = max(1, (os.cpu_count() or 1) // shard[1])
+    return evaluate(
+        actor,
+        list(tasks),
+        rollouts_per_task=ev["rollouts"],
+        seed=ev["seed"],
+        horizon=ev["horizon"],
+        workers=workers,
+        progress=progress,
+        shard=shard,
+        image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
+    )
+
+
+def _dmc_seeds(config: dict) -> None:
+    data, ev = config["data"], config["eval"]
+    dmc.check_disjoint(data["seed"], dmc.max_attempts(data["n_demos"]), ev["seed"], ev["rollouts"])
+
+
+def _dmc_dataset_seeds(dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
+    tried = dataset.metadata["variation_seeds"]
+    clash = sorted(set(tried) & set(range(eval_seed, eval_seed + rollouts)))
+    if clash:
+        raise ValueError(f"the dataset's demonstrations used evaluation seeds {clash[:5]}")
+
+
+def _dmc_dataset(config: dict, tasks: Sequence[str], progress: bool) -> DemoDataset:
+    data = config["data"]
+    return dmc.build_dataset(
+        data["root"], tasks, data["n_demos"], data["seed"], data["chunk_horizon"], data["history"], verbose=progress
+    )
+
+
+def _dmc_evaluate(config, actor, tasks, progress, shard) -> pd.DataFrame:
+    ev = config["eval"]
+    return dmc.evaluate(actor, tasks, ev["rollouts"], seed=ev["seed"], horizon=ev["horizon"], shard=shard)
+
+
+SUITES: dict[str, Suite] = {
+    "metaworld": Suite(
+        resolve=mw_tasks.resolve_tasks,
+        max_horizon=MAX_HORIZON,
+        check_seeds=_metaworld_seeds,
+        check_dataset=lambda dataset, seed, rollouts: dataset.check_disjoint(seed, rollouts),
+        build_dataset=_metaworld_dataset,
+        evaluate=_metaworld_evaluate,
+        images=True,
+    ),
+    "dm_control": Suite(
+        resolve=dmc.resolve_tasks,
+        max_horizon=dmc.MAX_HORIZON,
+        check_seeds=_dmc_seeds,
+        check_dataset=_dmc_dataset_seeds,
+        build_dataset=_dmc_dataset,
+        evaluate=_dmc_evaluate,
+        images=False,
+    ),
+}
 
 
 def validate(config: dict) -> dict:
@@ -150,16 +262,21 @@ def validate(config: dict) -> dict:
     for key in ("start", "ramp"):
         if not 0 <= obj[key] <= 1:
             raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
+    _check_choice("data.suite", data["suite"], list(SUITES))
     given = _given_dataset(data["path"]) if data["path"] else None
-    train_tasks = tuple(given.tasks) if given is not None else _resolve_tasks("data.tasks", data["tasks"])
-    if given is not None and given.source != "metaworld" and ev["rollouts"]:
+    suite_name = given.source if given is not None else data["suite"]  # a given dataset brings its own
+    suite = SUITES.get(suite_name)
+    if given is not None and suite is None and ev["rollouts"]:
         raise ConfigError(
-            f"data.path={data['path']} holds {given.source} demonstrations of {list(train_tasks)}, which have no "
-            "simulator here (evaluation runs MetaWorld): set eval.rollouts=0 to train without evaluation"
+            f"data.path={data['path']} holds {given.source} demonstrations of {given.tasks}, which have no "
+            f"simulator here (evaluation runs {sorted(SUITES)}): set eval.rollouts=0 to train without evaluation"
         )
+    train_tasks = tuple(given.tasks) if given is not None else _resolve_tasks(suite, "data.tasks", data["tasks"])
     eval_tasks = ()
     if ev["rollouts"]:
-        eval_tasks = _resolve_tasks("eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
+        eval_tasks = _resolve_tasks(suite, "eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
+    if data["image_size"] and suite is not None and not suite.images:
+        raise ConfigError(f"data.image_size={data['image_size']}: the {suite_name} suite has no image observations")
     for name, value, low in (
         ("data.n_demos", data["n_demos"], 1),
         ("data.slice_len", data["slice_len"], 1),
@@ -177,7 +294,7 @@ def validate(config: dict) -> dict:
         ("logging.record_episodes", log["record_episodes"], 1),
     ):
         _check_int(name, value, low)
-    _check_int("eval.horizon", ev["horizon"], 1, MAX_HORIZON)
+    _check_int("eval.horizon", ev["horizon"], 1, suite.max_horizon if suite is not None else MAX_HORIZON)
     _check_int("threads", config["threads"], 0)
     for name in ("data.workers", "eval.workers"):
         value = config[name.split(".")[0]][name.split(".")[1]]
@@ -205,10 +322,9 @@ def validate(config: dict) -> dict:
     if ev["rollouts"]:
         try:
             if given is not None:
-                given.check_disjoint(ev["seed"], ev["rollouts"])
+                suite.check_dataset(given, ev["seed"], ev["rollouts"])
             else:
-                demo_seeds = mw_tasks.variation_seeds(data["seed"], 3 * data["n_demos"] + 5)
-                mw_tasks.check_disjoint(demo_seeds, mw_tasks.variation_seeds(ev["seed"], ev["rollouts"]))
+                suite.check_seeds(config)
         except ValueError as err:
             where = f"data.path={data['path']}" if given is not None else f"data.seed={data['seed']}"
             raise ConfigError(f"{where} and eval.seed={ev['seed']}: {err}") from None
@@ -223,7 +339,7 @@ def validate(config: dict) -> dict:
         make_objective(config, make_policy(config, placeholder))
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
-    return {"train": train_tasks, "eval": eval_tasks}
+    return {"train": train_tasks, "eval": eval_tasks, "suite": suite_name}
 
 
 def _device(name: str, local_rank: int = 0) -> torch.device:
@@ -255,21 +371,12 @@ def _given_dataset(path: str) -> DemoDataset:
 
 
 def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> DemoDataset:
-    """The demonstration dataset: ``data.path`` if given, else collected once, then loaded from ``data.root``."""
+    """The demonstration dataset: ``data.path`` if given, else collected in ``data.suite`` once, then loaded
+    from ``data.root``."""
     data = config["data"]
     if data["path"]:
         return _given_dataset(data["path"])
-    return build_dataset(
-        data["root"],
-        list(tasks),
-        n_demos=data["n_demos"],
-        seed=data["seed"],
-        chunk_horizon=data["chunk_horizon"],
-        history=data["history"],
-        image_size=data["image_size"],
-        workers=data["workers"],
-        progress=progress,
-    )
+    return SUITES[data["suite"]].build_dataset(config, tasks, progress)
 
 
 def make_policy(config: dict, info: DataInfo) -> Policy:
@@ -317,32 +424,20 @@ def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.o
 
 
 def make_evaluator(
-    config: dict, tasks: Sequence[str], progress: bool = True, shard: tuple[int, int] = (0, 1)
+    config: dict,
+    tasks: Sequence[str],
+    progress: bool = True,
+    shard: tuple[int, int] = (0, 1),
+    suite: str | None = None,
 ) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
-    """A function running the evaluator collectors on a policy, with ``eval``'s settings.
+    """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy.
 
-    ``shard=(rank, world)`` runs that share of the rollouts on this process's share of the cores.
-    A policy reading ``pixels`` gets camera images of ``data.image_size``.
+    ``validate(config)["suite"]`` names the suite of a ``data.path`` dataset. ``shard=(rank, world)``
+    runs that share of the rollouts on this process's share of the cores. A MetaWorld policy reading
+    ``pixels`` gets camera images of ``data.image_size``.
     """
-    ev = config["eval"]
-    workers = ev["workers"]
-    if workers is None and shard[1] > 1:
-        workers = max(1, (os.cpu_count() or 1) // shard[1])
-
-    def run(actor: TensorDictModuleBase) -> pd.DataFrame:
-        return evaluate(
-            actor,
-            list(tasks),
-            rollouts_per_task=ev["rollouts"],
-            seed=ev["seed"],
-            horizon=ev["horizon"],
-            workers=workers,
-            progress=progress,
-            shard=shard,
-            image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
-        )
-
-    return run
+    run_suite = SUITES[suite or config["data"]["suite"]]
+    return lambda actor: run_suite.evaluate(config, actor, list(tasks), progress, shard)
 
 
 # -- Run state ---------------------------------------------------------------------------------
@@ -458,9 +553,9 @@ def evaluate_checkpoint(
             ev[key] = value
     if tasks:
         ev["tasks"] = list(tasks)
-    names = validate(config)["eval"]
+    checked = validate(config)
     actor = policy_from_checkpoint(state, path)
-    rollouts_df = make_evaluator(config, names, progress=progress)(actor)
+    rollouts_df = make_evaluator(config, checked["eval"], progress=progress, suite=checked["suite"])(actor)
     target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev['seed']}.csv"
     write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
     print(f"{path} (step {state['step']}), {ev['rollouts']} rollouts per task, seed {ev['seed']}; rollouts in {target}")
@@ -518,7 +613,7 @@ class Trainer:
         if dist.main:
             dist.barrier()
         if config["eval"]["rollouts"]:
-            self.dataset.check_disjoint(config["eval"]["seed"], config["eval"]["rollouts"])
+            SUITES[tasks["suite"]].check_dataset(self.dataset, config["eval"]["seed"], config["eval"]["rollouts"])
         self.info = DataInfo.from_metadata(self.dataset.metadata)
         self.policy = make_policy(config, self.info)
         self.objective = make_objective(config, self.policy).to(self.device)
@@ -543,7 +638,9 @@ class Trainer:
         self.evaluator = None  # eval.rollouts=0: training only
         if config["eval"]["rollouts"]:
             shard = (dist.rank, dist.world)
-            self.evaluator = make_evaluator(config, tasks["eval"], progress=self.progress, shard=shard)
+            self.evaluator = make_evaluator(
+                config, tasks["eval"], progress=self.progress, shard=shard, suite=tasks["suite"]
+            )
         self.steps = self.opt_cfg["steps"]
         self.record_at = (
             {self.steps if s == -1 else s for s in self.log_cfg["record_weights_at"]} if dist.main else set()

@@ -61,7 +61,7 @@ NOT_IDENTITY = (
 # Settings added after runs were made, with the value that computes what runs made before them
 # computed: at that value they are left out of the identity, so earlier runs keep their names and
 # stay resumable.
-ADDED_LATER = ((("data", "path"), None),)
+ADDED_LATER = ((("data", "path"), None), (("data", "suite"), "metaworld"))
 
 
 def identity(config: dict) -> dict:

@@ -549,7 +549,7 @@ def test_slurm_launcher_example_composes(tmp_path):
 
 
 def test_settings_added_later_keep_earlier_run_names():
-    # data.path came after many runs were made: a config without it (saved before) and one with its
+    # data.path and data.suite came after many runs were made: a config without it (saved before) and one with its
     # neutral value (None) are the same run, so those runs keep their directory names and resume.
     import copy
 
@@ -557,8 +557,9 @@ def test_settings_added_later_keep_earlier_run_names():
 
     cfg = compose_config()
     old = copy.deepcopy(cfg)
-    del old["data"]["path"]
-    assert cfg["data"]["path"] is None
+    del old["data"]["path"], old["data"]["suite"]
+    assert cfg["data"]["path"] is None and cfg["data"]["suite"] == "metaworld"
     assert run_name(cfg) == run_name(old)
     assert config_differences(identity(old), identity(cfg)) == []
     assert run_name(compose_config("data.path=/some/dataset")) != run_name(cfg)
+    assert run_name(compose_config("data.suite=dm_control")) != run_name(cfg)

@@ -77,6 +77,8 @@ def import_folder(
     the checked episodes (module docstring) and the metadata entries particular to the source
     (``source``, ``settings``, ``tasks``, ``instructions``, the per-task counts, ...: see
     :func:`_metadata`); it runs before anything is written, so bad input leaves nothing behind.
+    Tasks get ids in order of first appearance, unless the entries give ``task_ids`` (a name -> id
+    map of a fixed task list, then also ``n_task_ids``).
     A folder left incomplete or stale by an earlier import is removed and written again.
     """
     key = _data.cache_key(settings)
@@ -98,12 +100,10 @@ def import_folder(
             shutil.rmtree(final)
     start = time.perf_counter()
     episodes, extra = read()
-    tasks: list[str] = []
-    for ep in episodes:
-        if ep["task"] not in tasks:
-            tasks.append(ep["task"])
-    data = _steps(episodes, tasks, settings["chunk_horizon"], settings["history"])
-    metadata = _metadata(settings, key, tasks, episodes, data, extra, time.perf_counter() - start)
+    tasks = list(dict.fromkeys(ep["task"] for ep in episodes))
+    ids = extra.pop("task_ids", None) or {t: i for i, t in enumerate(tasks)}
+    data = _steps(episodes, ids, settings["chunk_horizon"], settings["history"])
+    metadata = _metadata(settings, key, tasks, ids, episodes, data, extra, time.perf_counter() - start)
     path = _data.write_dataset(root, name, data, metadata)
     dataset = _data.load_dataset(path)
     if verbose:
@@ -111,13 +111,13 @@ def import_folder(
     return dataset
 
 
-def _steps(episodes: Sequence[dict], tasks: list[str], chunk_horizon: int, history: int):
+def _steps(episodes: Sequence[dict], ids: dict[str, int], chunk_horizon: int, history: int):
     lengths = np.array([len(ep["action"]) for ep in episodes], dtype=np.int64)
     ends = np.cumsum(lengths) - 1
     cat = {k: np.concatenate([ep[k] for ep in episodes]) for k in _STEP_KEYS}
     truncated = np.zeros(int(lengths.sum()), dtype=bool)
     truncated[ends] = ~cat["terminated"][ends]  # an episode that ends without terminating was cut
-    task_id = np.concatenate([np.full(len(ep["action"]), tasks.index(ep["task"]), np.int64) for ep in episodes])
+    task_id = np.concatenate([np.full(len(ep["action"]), ids[ep["task"]], np.int64) for ep in episodes])
     return _data.steps_tensordict(
         **cat, truncated=truncated, lengths=lengths, task_id=task_id, horizon=chunk_horizon, history=history
     )
@@ -126,14 +126,14 @@ def _steps(episodes: Sequence[dict], tasks: list[str], chunk_horizon: int, histo
 _STEP_KEYS = ("observation", "next_observation", "action", "action_raw", "reward", "terminated")
 
 
-def _metadata(settings, key, tasks, episodes, data, extra, secs) -> dict:
+def _metadata(settings, key, tasks, ids, episodes, data, extra, secs) -> dict:
     import tar_rl
 
     per_task = {}
-    for t, task in enumerate(tasks):
+    for task in tasks:
         lengths = [len(ep["action"]) for ep in episodes if ep["task"] == task]
         per_task[task] = {
-            "task_id": t,
+            "task_id": ids[task],
             "instruction": (extra.get("instructions") or {}).get(task),
             "episodes": len(lengths),
             "kept": len(lengths),

@@ -85,9 +85,12 @@ class DataInfo:
         stats = metadata["stats"]["observation"]
         own = {}
         if metadata.get("source", "metaworld") != "metaworld":
-            names = list(metadata["tasks"])
+            # ids 0..n-1 of the dataset's tasks, or of a fixed task list (n_task_ids, e.g. dm_control's)
+            ids = metadata["task_ids"]
+            n = int(metadata.get("n_task_ids", len(ids)))
             texts = metadata.get("instructions") or {}
-            own = {"n_tasks": len(names), "instructions": tuple(texts.get(t) or "" for t in names)}
+            by_id = {i: t for t, i in ids.items()}
+            own = {"n_tasks": n, "instructions": tuple(texts.get(by_id.get(i, "")) or "" for i in range(n))}
         return cls(
             **own,
             obs_dim=len(stats["mean"]),
