@@ -1,7 +1,8 @@
 """LIBERO: suite horizons, rows and metrics, the observation layout, the importer's task names, the recipe's rules.
 
-The first part needs no LIBERO package. The last part (marked slow) runs real LIBERO environments
-through TorchRL's ``LiberoEnv`` and is skipped where no LIBERO package is installed (CI installs none).
+The first part needs no LIBERO package (the evaluator's loop runs on a stand-in environment). The last part runs
+real LIBERO environments through TorchRL's ``LiberoEnv`` (two of its tests marked slow) and is skipped where no
+LIBERO package is installed (CI installs none).
 """
 
 from __future__ import annotations
@@ -154,6 +155,120 @@ def test_evaluate_checks_its_arguments_first():
         libero.evaluate(None, [SPATIAL_0], rollouts_per_task=1, obs_keys=["object"])
 
 
+class _OpenGripper(TensorDictModuleBase):
+    """Stands still with the gripper open; records what it was given."""
+
+    in_keys = ["observation", "task_id", "is_init"]
+    out_keys = ["action"]
+
+    def __init__(self):
+        super().__init__()
+        self.seen = []
+
+    def forward(self, tensordict):
+        self.seen.append({k: tensordict.get(k).clone() for k in self.in_keys})
+        action = torch.zeros(tensordict.shape[0], libero.ACTION_DIM)
+        action[:, -1] = -1.0
+        tensordict.set("action", action)
+        return tensordict
+
+
+class _FakeLibero:
+    """Stands in for LIBERO's environments: rollout ``k`` succeeds after ``k + 2`` steps, initial state 2 raises."""
+
+    @staticmethod
+    def make_env(task, task_id, horizon, obs_keys=libero.DEFAULT_OBS_KEYS, camera_size=64):
+        from torchrl.data import Bounded, Categorical, Composite, Unbounded
+        from torchrl.envs import Compose, EnvBase, InitTracker, TensorDictPrimer, TransformedEnv
+
+        class Base(EnvBase):
+            init_state_id = 0
+
+            def __init__(self):
+                super().__init__()
+                self.observation_spec = Composite(
+                    observation=Unbounded((libero.obs_dim(obs_keys),)), success=Categorical(2, (1,), dtype=torch.bool)
+                )
+                self.action_spec = Bounded(-1.0, 1.0, (libero.ACTION_DIM,))
+                self.reward_spec = Unbounded((1,))
+                self.t = 0
+
+            def _reset(self, td):
+                self.t = 0
+                out = self.observation_spec.zero()
+                out.update(self.full_done_spec.zero())
+                return out
+
+            def _step(self, td):
+                self.t += 1
+                if self.init_state_id == 2 and self.t == 2:
+                    raise RuntimeError("simulation unstable")
+                done = self.t >= self.init_state_id + 2 or self.t >= horizon
+                success = self.t >= self.init_state_id + 2
+                out = self.observation_spec.zero()
+                out["observation"] += self.t
+                out["success"] = torch.tensor([success])
+                out["reward"] = torch.tensor([float(success)])
+                out["terminated"] = torch.tensor([success])
+                out["truncated"] = torch.tensor([done and not success])
+                out["done"] = torch.tensor([done])
+                return out
+
+            def _set_seed(self, seed):
+                pass
+
+        return TransformedEnv(
+            Base(),
+            Compose(
+                InitTracker(init_key="is_init"),
+                TensorDictPrimer(task_id=Unbounded((), dtype=torch.int64), default_value=task_id, expand_specs=True),
+            ),
+        )
+
+
+@pytest.fixture
+def fake_libero(monkeypatch):
+    table = {"libero_spatial": (SPATIAL_0, SPATIAL_1), "libero_object": (), "libero_goal": (), "libero_10": ("t10",)}
+    monkeypatch.setattr(libero, "require_libero", lambda: None)
+    monkeypatch.setattr(libero, "task_table", lambda: table)
+    monkeypatch.setattr(libero, "make_env", _FakeLibero.make_env)
+
+
+def test_evaluator_rows_from_rollouts(fake_libero):
+    policy = _OpenGripper()
+    rows = libero.evaluate(policy, ["t10", SPATIAL_1], rollouts_per_task=4, seed=10, task_ids={"t10": 7, SPATIAL_1: 1})
+    assert list(rows.columns) == list(COLUMNS)
+    assert list(rows["task"]) == ["t10"] * 4 + [SPATIAL_1] * 4
+    assert list(rows["group"]) == ["libero_10"] * 4 + ["libero_spatial"] * 4
+    # rollout k succeeds after k + 2 steps; initial state 2 raises: a failure with the whole budget
+    assert list(rows["success"]) == [True, True, False, True] * 2
+    assert list(rows["steps"]) == [2, 3, 520, 5, 2, 3, 280, 5]
+    expected_rho = [2 / 520, 3 / 520, 1.0, 5 / 520, 2 / 280, 3 / 280, 1.0, 5 / 280]
+    assert rows["rho"].tolist() == pytest.approx(expected_rho)
+    assert rows["failure"].tolist()[2] == "RuntimeError: simulation unstable"
+    assert list(rows["variation_seed"]) == [10, 11, 12, 13] * 2 and list(rows["return"])[:2] == [1.0, 1.0]
+    assert [int(s["task_id"]) for s in policy.seen][:2] == [7, 7] and int(policy.seen[-1]["task_id"]) == 1
+    # a budget of 3 steps: rollout 3 (5 steps) now fails; shards split the (task, rollout) list
+    short = libero.evaluate(_OpenGripper(), [SPATIAL_1], rollouts_per_task=4, horizon=3, shard=(1, 2))
+    assert list(short["variation_index"]) == [1, 3] and list(short["steps"]) == [3, 3]
+    assert list(short["success"]) == [True, False] and list(short["rho"]) == [1.0, 1.0]
+
+
+def test_evaluator_refuses_a_bad_policy_and_unknown_tasks(fake_libero):
+    class Wrong(_OpenGripper):
+        def forward(self, tensordict):
+            tensordict.set("action", torch.full((tensordict.shape[0], libero.ACTION_DIM), math.nan))
+            return tensordict
+
+    with pytest.raises(libero.PolicyError, match=r"non-finite actions for t10 at step 1"):
+        libero.evaluate(Wrong(), ["t10"], rollouts_per_task=1)
+    with pytest.raises(ValueError, match=r"no task_id for \['t10'\]"):
+        libero.evaluate(_OpenGripper(), ["t10"], rollouts_per_task=1, task_ids={SPATIAL_0: 0})
+    with pytest.raises(ValueError, match=r"unknown LIBERO task 'reach'"):
+        libero.evaluate(_OpenGripper(), ["reach"], rollouts_per_task=1)
+    assert libero.resolve_tasks(["libero_spatial", SPATIAL_0, "t10"]) == [SPATIAL_0, SPATIAL_1, "t10"]
+
+
 # -- LIBERO HDF5 files: the importer's task names ------------------------------------------------
 
 
@@ -263,24 +378,6 @@ def test_without_data_suite_libero_imported_libero_files_are_not_evaluated(tmp_p
 
 
 # -- With a LIBERO package: real environments (slow; skipped without the package) ---------------
-
-
-class _OpenGripper(TensorDictModuleBase):
-    """Stands still with the gripper open; records what it was given."""
-
-    in_keys = ["observation", "task_id", "is_init"]
-    out_keys = ["action"]
-
-    def __init__(self):
-        super().__init__()
-        self.seen = []
-
-    def forward(self, tensordict):
-        self.seen.append({k: tensordict.get(k).clone() for k in self.in_keys})
-        action = torch.zeros(tensordict.shape[0], libero.ACTION_DIM)
-        action[:, -1] = -1.0
-        tensordict.set("action", action)
-        return tensordict
 
 
 # robosuite 1.4 logs through the deprecated Logger.warn on import (pytest turns warnings into errors)
