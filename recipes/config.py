@@ -109,12 +109,16 @@ class DataConfig:
             ``tar-rl data import`` (robomimic / LIBERO HDF5) or a MetaWorld dataset of
             ``data.root``. Its tasks, chunk horizon, history and image size are the dataset's
             (``tasks``, ``n_demos``, ``seed``, ``chunk_horizon``, ``history`` and ``image_size``
-            above are then not used). Imported demonstrations have no simulator here: train them
-            with ``eval.rollouts=0``.
+            above are then not used). Imported demonstrations have no simulator here (train them
+            with ``eval.rollouts=0``), except LIBERO files with ``suite=libero``.
         suite: the simulator demonstrations are collected in and policies evaluated on:
             ``metaworld`` or ``dm_control`` (``point_mass-easy``, ``reacher-easy`` or the group
             ``dm_control`` in ``tasks``; scripted experts, see ``tar_rl.collectors.dmc``). A
-            ``data.path`` dataset brings its own.
+            ``data.path`` dataset brings its own. ``libero`` (optional extra: needs a LIBERO
+            package, see ``tar_rl.collectors.libero``) collects nothing: it evaluates a ``data.path``
+            imported from LIBERO HDF5 files on LIBERO's suites, each with its own step budget
+            ``H`` (280/280/300/520: ``eval.horizon`` is not read), rollout ``k`` from LIBERO's
+            fixed initial state ``k`` (``eval.rollouts`` at most 50).
     """
 
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))

@@ -44,7 +44,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed
-from tar_rl.collectors import dmc
+from tar_rl.collectors import dmc, libero
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
 from tar_rl.data import DatasetError, DemoDataset, build_dataset, load_dataset
@@ -226,6 +226,48 @@ def _dmc_evaluate(config, actor, tasks, progress, shard) -> pd.DataFrame:
     return dmc.evaluate(actor, tasks, ev["rollouts"], seed=ev["seed"], horizon=ev["horizon"], shard=shard)
 
 
+def _libero_resolve(spec: list[str]) -> list[str]:
+    try:
+        return libero.resolve_tasks(spec)
+    except ImportError as err:
+        raise ValueError(str(err)) from None
+
+
+def _libero_no_collection(*_args) -> None:
+    raise ValueError(libero.NO_COLLECTION)
+
+
+def _libero_dataset_check(dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
+    # LIBERO's demonstrations are separate human demonstrations and its rollouts start from the
+    # suite's fixed initial states 0..rollouts-1: no seed range to compare. What is checked: the
+    # dataset's tasks are LIBERO tasks, its observation keys can be rebuilt from the simulator, and
+    # there is one initial state per rollout.
+    if rollouts > libero.INIT_STATES:
+        raise ValueError(f"LIBERO has {libero.INIT_STATES} initial states per task: at most that many rollouts")
+    keys = [entry["key"] for entry in dataset.metadata.get("obs_keys", [])]
+    libero.check_obs_keys(keys)
+    try:
+        for task in dataset.tasks:
+            libero.suite_of(task)
+    except ImportError as err:
+        raise ValueError(str(err)) from None
+
+
+def _libero_evaluate(config, actor, tasks, progress, shard) -> pd.DataFrame:
+    ev = config["eval"]
+    metadata = load_dataset(config["data"]["path"]).metadata
+    return libero.evaluate(
+        actor,
+        tasks,
+        ev["rollouts"],
+        seed=ev["seed"],
+        horizon=None,  # each suite's H: the paper's suite-wise normalisation
+        shard=shard,
+        task_ids=metadata["task_ids"],
+        obs_keys=[entry["key"] for entry in metadata["obs_keys"]],
+    )
+
+
 SUITES: dict[str, Suite] = {
     "metaworld": Suite(
         resolve=mw_tasks.resolve_tasks,
@@ -243,6 +285,16 @@ SUITES: dict[str, Suite] = {
         check_dataset=_dmc_dataset_seeds,
         build_dataset=_dmc_dataset,
         evaluate=_dmc_evaluate,
+        images=False,
+    ),
+    # Evaluation only: datasets come from LIBERO HDF5 files (robomimic importer) through data.path.
+    "libero": Suite(
+        resolve=_libero_resolve,
+        max_horizon=max(libero.SUITE_HORIZONS.values()),
+        check_seeds=_libero_no_collection,
+        check_dataset=_libero_dataset_check,
+        build_dataset=_libero_no_collection,
+        evaluate=_libero_evaluate,
         images=False,
     ),
 }
@@ -265,6 +317,15 @@ def validate(config: dict) -> dict:
     _check_choice("data.suite", data["suite"], list(SUITES))
     given = _given_dataset(data["path"]) if data["path"] else None
     suite_name = given.source if given is not None else data["suite"]  # a given dataset brings its own
+    if data["suite"] == "libero":  # imported LIBERO files are evaluated on LIBERO when asked for
+        if given is None:
+            raise ConfigError(f"data.suite=libero needs data.path: {libero.NO_COLLECTION}")
+        if given.source != "robomimic":
+            raise ConfigError(
+                f"data.suite=libero evaluates demonstrations imported from LIBERO HDF5 files (source robomimic); "
+                f"data.path={data['path']} holds {given.source} demonstrations"
+            )
+        suite_name = "libero"
     suite = SUITES.get(suite_name)
     if given is not None and suite is None and ev["rollouts"]:
         raise ConfigError(
@@ -275,6 +336,11 @@ def validate(config: dict) -> dict:
     eval_tasks = ()
     if ev["rollouts"]:
         eval_tasks = _resolve_tasks(suite, "eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
+    if suite_name == "libero" and set(eval_tasks) - set(train_tasks):
+        raise ConfigError(
+            f"eval.tasks: {sorted(set(eval_tasks) - set(train_tasks))} are not tasks of data.path={data['path']} "
+            f"(its tasks: {list(train_tasks)}); the policy has no task id for them"
+        )
     if data["image_size"] and suite is not None and not suite.images:
         raise ConfigError(f"data.image_size={data['image_size']}: the {suite_name} suite has no image observations")
     for name, value, low in (

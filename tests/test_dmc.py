@@ -209,7 +209,7 @@ def test_recipe_trains_and_evaluates_on_dm_control(tmp_path):
 @pytest.mark.parametrize(
     ("override", "message"),
     [
-        ("data.suite=bogus", r"data.suite='bogus' is not valid; choose one of \['metaworld', 'dm_control'\]"),
+        ("data.suite=bogus", r"data.suite='bogus' is not valid; choose one of \['metaworld', 'dm_control', 'libero'\]"),
         ("data.tasks=[reach]", "data.tasks: unknown dm_control task 'reach'"),
         ("data.image_size=32", "the dm_control suite has no image observations"),
         ("data.seed=1001", "data.seed=1001 and eval.seed=1000: demonstration seeds 1001..1012 overlap"),

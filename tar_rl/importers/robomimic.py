@@ -20,9 +20,11 @@ last step's own observation at the end of an episode). ``("next", "terminated")`
 ``("next", "truncated")`` marks an episode's last step when ``dones`` does not. Demos are stored in
 their natural order (``demo_2`` before ``demo_10``), or in the filter's order.
 
-Tasks: one task per file, named by LIBERO's ``problem_info.problem_name``, else robomimic's
-``env_args.env_name``, else the file's stem. Files with the same task name share a task id; ids
-follow the order in which the names first appear.
+Tasks: one task per file, named by the stem of LIBERO's ``bddl_file_name`` attribute (LIBERO's own
+task name, e.g. ``pick_up_the_black_bowl_next_to_the_ramekin_and_place_it_on_the_plate``; its
+``problem_info.problem_name`` names the scene, shared by all tasks of a suite), else by
+``problem_info.problem_name``, else robomimic's ``env_args.env_name``, else the file's stem. Files
+with the same task name share a task id; ids follow the order in which the names first appear.
 
 Every file is read and checked completely before anything is written: a missing key, ragged
 arrays, a NaN or Inf, an action outside [-1, 1] (without ``clip``), an unknown or empty filter
@@ -116,6 +118,7 @@ def _read_file(path: Path, keys: list[str], filter_key: str | None, clip: bool) 
         group = f["data"]
         env_args = _json_attr(group, "env_args", f"{path}: data")
         problem_info = _json_attr(group, "problem_info", f"{path}: data")
+        bddl = group.attrs.get("bddl_file_name") if problem_info else None
         if filter_key is not None:
             masks = sorted(f["mask"].keys()) if "mask" in f else []
             if filter_key not in masks:
@@ -162,7 +165,11 @@ def _read_file(path: Path, keys: list[str], filter_key: str | None, clip: bool) 
     widths = {(d["observation"].shape[1], d["action"].shape[1]) for d in demos}
     if len(widths) != 1:
         raise DemoImportError(f"{path}: demos disagree on the observation/action widths {sorted(widths)}")
-    if problem_info and problem_info.get("problem_name"):
+    if isinstance(bddl, bytes):
+        bddl = bddl.decode()
+    if bddl:  # LIBERO: the BDDL file names the task (problem_name is the scene, shared by a suite's tasks)
+        task = Path(str(bddl).replace("\\", "/")).stem
+    elif problem_info and problem_info.get("problem_name"):
         task = str(problem_info["problem_name"])
     elif env_args and env_args.get("env_name"):
         task = str(env_args["env_name"])
