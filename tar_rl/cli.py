@@ -4,7 +4,7 @@ Sub-commands:
 
 * ``tar-rl train [overrides] [--cfg job] [-m]``: the offline BC recipe (``recipes/offline_bc.py``),
   configured with Hydra overrides such as ``objective=uniform`` or ``objective.gamma=2``.
-* ``tar-rl eval CHECKPOINT``: evaluate a saved policy on its suite (MetaWorld or dm_control).
+* ``tar-rl eval CHECKPOINT``: evaluate a saved policy on its suite (MetaWorld, dm_control or LIBERO).
 * ``tar-rl report RUN_DIR...``: compare finished runs (tables and figures).
 * ``tar-rl data import robomimic FILE... --obs-keys a,b,c``: robomimic/LIBERO HDF5 demonstrations into a
   dataset folder; ``tar-rl data import lerobot FOLDER``: a LeRobot dataset on local disk;
@@ -25,7 +25,7 @@ def _parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     commands.add_parser("train", help="train a policy (Hydra overrides follow; `tar-rl train --help` lists them)")
     commands.add_parser("report", help="compare finished runs (`tar-rl report --help`)")
-    ev = commands.add_parser("eval", help="evaluate a saved policy on its suite (MetaWorld or dm_control)")
+    ev = commands.add_parser("eval", help="evaluate a saved policy on its suite (MetaWorld, dm_control or LIBERO)")
     ev.add_argument("checkpoint", help="a checkpoint.pt or a run directory holding one")
     ev.add_argument("--tasks", nargs="+", help="tasks or groups (default: the run's evaluation tasks)")
     ev.add_argument("--rollouts", type=int, help="rollouts per task (default: the run's)")
