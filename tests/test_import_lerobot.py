@@ -227,3 +227,24 @@ def test_cli_import_then_train_without_evaluation(folder, tmp_path, capsys):
     assert json.loads((run / "summary.json").read_text())["finished"]
     with pytest.raises(SystemExit, match=r"tar-rl data import lerobot: .*no such folder"):
         main(["data", "import", "lerobot", str(tmp_path / "nowhere")])
+
+
+def test_v2_folder_gives_the_same_dataset(tmp_path):
+    # LeRobot v2.x: one parquet file per episode, the task table in meta/tasks.jsonl.
+    frames = _frames()
+    root = tmp_path / "v21"
+    (root / "meta").mkdir(parents=True)
+    (root / "meta" / "info.json").write_text(json.dumps({"codebase_version": "v2.1", "fps": 10}))
+    (root / "meta" / "tasks.jsonl").write_text(
+        "\n".join(json.dumps({"task_index": i, "task": t}) for i, t in enumerate(TASK_TEXT)) + "\n"
+    )
+    data = root / "data" / "chunk-000"
+    data.mkdir(parents=True)
+    for e in range(len(LENGTHS)):
+        frames[frames["episode_index"] == e].to_parquet(data / f"episode_{e:06d}.parquet")
+    ds = import_lerobot(root, KEYS, out=tmp_path / "out", chunk_horizon=H, history=K, verbose=False)
+    _check(ds, _expected(frames))
+    assert ds.metadata["tasks"] == TASK_TEXT and ds.metadata["lerobot"]["format"] == "v2.1"
+    (root / "meta" / "info.json").write_text(json.dumps({"codebase_version": "v1.6"}))
+    with pytest.raises(DemoImportError, match=r"LeRobot format 'v1.6' is not supported \(v2.x and v3.x are\)"):
+        import_lerobot(root, KEYS, out=tmp_path / "out2", verbose=False)
