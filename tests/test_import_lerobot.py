@@ -248,3 +248,16 @@ def test_v2_folder_gives_the_same_dataset(tmp_path):
     (root / "meta" / "info.json").write_text(json.dumps({"codebase_version": "v1.6"}))
     with pytest.raises(DemoImportError, match=r"LeRobot format 'v1.6' is not supported \(v2.x and v3.x are\)"):
         import_lerobot(root, KEYS, out=tmp_path / "out2", verbose=False)
+
+
+@pytest.mark.parametrize(
+    ("keys", "message"),
+    [("", "obs_keys is empty: name at least one state column"), (["action", "action"], r"\['action'\] more than once")],
+)
+def test_obs_keys_refused_by_both_importers(folder, tmp_path, keys, message):
+    from tar_rl.importers import import_robomimic
+
+    with pytest.raises(DemoImportError, match=message.replace("state column", ".*")):
+        import_robomimic(tmp_path / "none.hdf5", keys, out=tmp_path / "out", verbose=False)
+    with pytest.raises(DemoImportError, match=message):
+        import_lerobot(folder[0], keys, out=tmp_path / "out", verbose=False)

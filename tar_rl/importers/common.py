@@ -23,7 +23,7 @@ import torch
 
 from tar_rl import data as _data
 
-__all__ = ["ACTION_RANGE", "DemoImportError", "check_action_range", "fingerprint", "import_folder"]
+__all__ = ["ACTION_RANGE", "DemoImportError", "check_action_range", "fingerprint", "import_folder", "parse_keys"]
 
 #: The action range the policies and the evaluator assume (MetaWorld's action box).
 ACTION_RANGE = (-1.0, 1.0)
@@ -44,6 +44,22 @@ def fingerprint(path: Path) -> dict:
         }
     st = path.stat()
     return {"path": str(path.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def parse_keys(obs_keys: str | Sequence[str], what: str) -> list[str]:
+    """The observation keys of an import, from a list or one comma-separated string, in order.
+
+    Raises:
+        DemoImportError: no key, or a key named twice (``what`` says what a key is, for the message).
+    """
+    keys = [k.strip() for k in obs_keys.split(",")] if isinstance(obs_keys, str) else [str(k) for k in obs_keys]
+    keys = [k for k in keys if k]
+    if not keys:
+        raise DemoImportError(f"obs_keys is empty: name at least one {what}")
+    dup = sorted({k for k in keys if keys.count(k) > 1})
+    if dup:
+        raise DemoImportError(f"obs_keys names {dup} more than once")
+    return keys
 
 
 def check_action_range(action: np.ndarray, where: str, key: str, clip: bool) -> tuple[np.ndarray, int]:

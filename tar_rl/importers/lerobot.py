@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from tar_rl import data as _data
-from tar_rl.importers.common import DemoImportError, check_action_range, fingerprint, import_folder
+from tar_rl.importers.common import DemoImportError, check_action_range, fingerprint, import_folder, parse_keys
 
 __all__ = ["NAME_PREFIX", "import_lerobot"]
 
@@ -73,10 +73,7 @@ def _canonical(column: str):
 
 
 def _parse_columns(obs_keys: str | Sequence[str]) -> list[str]:
-    keys = [k.strip() for k in obs_keys.split(",")] if isinstance(obs_keys, str) else [str(k) for k in obs_keys]
-    keys = [k for k in keys if k]
-    if not keys:
-        raise DemoImportError("obs_keys is empty: name at least one state column (e.g. observation.state)")
+    keys = parse_keys(obs_keys, "state column (e.g. observation.state)")
     images = [k for k in keys if k.startswith("observation.images.") or k.startswith("observation.image")]
     if images:
         raise DemoImportError(f"obs_keys {images} are images or videos; only state columns can be imported")

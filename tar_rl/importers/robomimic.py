@@ -43,7 +43,14 @@ from pathlib import Path
 import numpy as np
 
 from tar_rl import data as _data
-from tar_rl.importers.common import ACTION_RANGE, DemoImportError, check_action_range, fingerprint, import_folder
+from tar_rl.importers.common import (
+    ACTION_RANGE,
+    DemoImportError,
+    check_action_range,
+    fingerprint,
+    import_folder,
+    parse_keys,
+)
 
 __all__ = ["ACTION_RANGE", "NAME_PREFIX", "DemoImportError", "import_robomimic"]
 
@@ -65,17 +72,6 @@ def _json_attr(group, name: str, where: str):
         return json.loads(raw)
     except (TypeError, ValueError) as err:
         raise DemoImportError(f"{where}: attribute {name!r} is not valid JSON: {err}") from err
-
-
-def _parse_keys(obs_keys: str | Sequence[str]) -> list[str]:
-    keys = [k.strip() for k in obs_keys.split(",")] if isinstance(obs_keys, str) else [str(k) for k in obs_keys]
-    keys = [k for k in keys if k]
-    if not keys:
-        raise DemoImportError("obs_keys is empty: name at least one low-dimensional observation key")
-    dup = sorted({k for k in keys if keys.count(k) > 1})
-    if dup:
-        raise DemoImportError(f"obs_keys names {dup} more than once")
-    return keys
 
 
 def _read_array(demo, key: str, where: str, length: int | None) -> np.ndarray:
@@ -225,7 +221,7 @@ def import_robomimic(
     files = [Path(paths)] if isinstance(paths, (str, os.PathLike)) else [Path(p) for p in paths]
     if not files:
         raise DemoImportError("no files to import")
-    keys = _parse_keys(obs_keys)
+    keys = parse_keys(obs_keys, "low-dimensional observation key")
     try:
         chunk_horizon = _data._positive_int("chunk_horizon", chunk_horizon)
         history = _data._positive_int("history", history)
