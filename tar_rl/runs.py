@@ -61,15 +61,23 @@ NOT_IDENTITY = (
 # Settings added after runs were made, with the value that computes what runs made before them
 # computed: at that value they are left out of the identity, so earlier runs keep their names and
 # stay resumable.
-ADDED_LATER = ((("data", "path"), None), (("data", "suite"), "metaworld"))
+# A third entry names the heads a setting was added to (the others had it from the start).
+ADDED_LATER = (
+    (("data", "path"), None),
+    (("data", "suite"), "metaworld"),
+    (("policy", "observation"), "state", ("act", "octo_linear", "octo_diffusion", "flow")),
+)
 
 
 def identity(config: dict) -> dict:
     """The settings that determine what a run computes: ``config`` without :data:`NOT_IDENTITY`
     (and without the :data:`ADDED_LATER` settings left at their neutral value)."""
     ident = copy.deepcopy(config)
-    drops = [(path, None) for path in NOT_IDENTITY] + list(ADDED_LATER)
-    for path, neutral in drops:
+    policy = config.get("policy", {}).get("name")
+    drops = [(path, None, None) for path in NOT_IDENTITY] + [(*entry, None)[:3] for entry in ADDED_LATER]
+    for path, neutral, heads in drops:
+        if heads is not None and policy not in heads:
+            continue
         node = ident
         for key in path[:-1]:
             node = node.get(key, {})

@@ -1,4 +1,4 @@
-"""Image observations: rendered demonstrations, the conv encoder, the MLP head on images.
+"""Image observations: rendered demonstrations, the conv encoder, every head on images.
 
 Rendering needs MuJoCo's off-screen backend (``MUJOCO_GL=egl``), chosen when MuJoCo is imported:
 the collection runs it in worker processes; the independent reference render below runs in a
@@ -7,6 +7,7 @@ subprocess of its own.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -17,16 +18,21 @@ import pandas as pd
 import pytest
 import torch
 from recipe_helpers import tiny
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors.evaluate import evaluate
 from tar_rl.data import build_dataset
-from tar_rl.policies import DataInfo, build_policy
+from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.vision import ConvEncoder
-from tar_rl.recipes.offline_bc import policy_from_checkpoint, train
+from tar_rl.recipes.config import ObjectiveConfig
+from tar_rl.recipes.offline_bc import make_objective, policy_from_checkpoint, train
 from tar_rl.runs import load_checkpoint
 
 S = 32
+H = 4
+HEADS = sorted(POLICIES)
+INFO = DataInfo(chunk_horizon=H, history=2, image_size=S)
 
 _REFERENCE = """
 import json, sys
@@ -41,6 +47,12 @@ r.update_scene(env.data, camera="corner2")
 img = r.render()[::-1, ::-1].transpose(2, 0, 1)  # corner2 is upside down: rotate by 180 degrees
 print(json.dumps({{"obs": obs.tolist(), "img": img.tolist()}}))
 """
+
+
+@pytest.fixture(scope="module")
+def image_datasets(tmp_path_factory):
+    """A dataset folder shared by the recipe jobs (one rendered dataset, collected once)."""
+    return tmp_path_factory.mktemp("recipe-image-datasets")
 
 
 @pytest.fixture(scope="module")
@@ -75,28 +87,102 @@ def test_conv_encoder_folds_leading_axes_and_checks_the_size():
         enc(torch.zeros(2, 3, S + 1, S + 1, dtype=torch.uint8))
 
 
-def test_mlp_on_images_reads_pixels_and_proprioception_only():
+def _image_inputs(n: int = 3, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict(
+        {
+            "observation": torch.randn(n, 39, generator=g),
+            "task_id": torch.tensor([1, 2, 3])[:n],
+            "is_init": torch.ones(n, 1, dtype=torch.bool),
+            "pixels": torch.randint(0, 256, (n, 3, S, S), dtype=torch.uint8, generator=g),
+        },
+        [n],
+    )
+
+
+def _image_segments(seed: int = 0) -> TensorDict:
+    """``[2, 4]`` training segments with images, histories and chunks for every head."""
+    g = torch.Generator().manual_seed(seed)
+    b, length = 2, 4
+    obs = torch.randn(b, length, 39, generator=g)
+    chunk = torch.tanh(torch.randn(b, length, H, 4, generator=g))
+    return TensorDict(
+        {
+            "observation": obs,
+            "observation_history": torch.stack([obs.roll(1, 1), obs], dim=2),
+            "observation_history_valid": torch.ones(b, length, 2, dtype=torch.bool),
+            "task_id": torch.ones(b, length, dtype=torch.long),
+            "action": chunk[:, :, 0].clone(),
+            "action_chunk": chunk,
+            "action_chunk_valid": torch.ones(b, length, H, dtype=torch.bool),
+            "pixels": torch.randint(0, 256, (b, length, 3, S, S), dtype=torch.uint8, generator=g),
+            ("collector", "mask"): torch.ones(b, length, dtype=torch.bool),
+        },
+        [b, length],
+    )
+
+
+def _move(td: TensorDict, dims: slice, shift: float) -> TensorDict:
+    """A copy with the observation entries ``dims`` shifted (in the current observation and its history)."""
+    out = td.clone()
+    out["observation"][..., dims] += shift
+    if "observation_history" in out.keys():
+        out["observation_history"][..., dims] += shift
+    return out
+
+
+@pytest.mark.parametrize("name", HEADS)
+def test_every_head_on_images_reads_pixels_and_proprioception_only(name):
     torch.manual_seed(0)
-    policy = build_policy({"name": "mlp", "observation": "image", "hidden": [32]}, DataInfo(image_size=S))
+    policy = build_policy({"name": name, "observation": "image"}, INFO)
     assert "pixels" in policy.actor.in_keys and "pixels" in policy.keys
-    net = policy.actor.module
-    obs = torch.randn(2, 39)
-    pixels = torch.randint(0, 256, (2, 3, S, S), dtype=torch.uint8)
-    task = torch.tensor([1, 2])
-    base = net(obs, task, pixels)
-    moved = obs.clone()
-    moved[:, 4:] += 5.0  # object and goal positions: not seen by an image policy
-    torch.testing.assert_close(net(moved, task, pixels), base)
-    moved[:, :4] += 1.0  # the hand and gripper: seen
-    assert not torch.allclose(net(moved, task, pixels), base)
-    assert not torch.allclose(net(obs, task, 255 - pixels), base)
+    actor = policy.actor.eval()
+    inputs = _image_inputs()
+
+    def act(td):
+        with torch.no_grad():
+            return actor(td.clone())["action"]
+
+    base = act(inputs)
+    torch.testing.assert_close(act(_move(inputs, slice(4, None), 5.0)), base)  # objects, goal: not seen
+    assert not torch.allclose(act(_move(inputs, slice(0, 4), 1.0)), base)  # hand and gripper: seen
+    other = inputs.clone()
+    other["pixels"] = 255 - other["pixels"]
+    assert not torch.allclose(act(other), base)
+    # Training: the per-step loss reads the same inputs, and the conv encoder learns.
+    objective = make_objective(
+        {
+            "objective": {**dataclasses.asdict(ObjectiveConfig()), "start": 0.0, "ramp": 0.0},
+            "optim": {"steps": 10},
+            "seed": 0,
+        },
+        policy,
+    ).train()
+    segments = _image_segments()
+
+    def step_losses(td):
+        torch.manual_seed(5)  # the generative heads draw the same noise each call
+        return objective.step_losses(td)
+
+    losses = step_losses(segments)
+    assert losses.shape == (2, 4)
+    torch.testing.assert_close(step_losses(_move(segments, slice(4, None), 5.0)), losses)
+    torch.manual_seed(5)
+    objective(segments)["loss_tar"].backward()
+    encoder = [n for n, p in objective.named_parameters() if ".image." in f".{n}" and p.requires_grad]
+    assert encoder and all(
+        p.grad is not None and p.grad.abs().sum() > 0 for n, p in objective.named_parameters() if n in encoder
+    )
+    with pytest.raises((ValueError, KeyError), match="pixels"):
+        actor(inputs.exclude("pixels"))
 
 
 def test_image_policy_needs_a_dataset_with_images():
-    with pytest.raises(ValueError, match=r"data\.image_size"):
-        build_policy({"name": "mlp", "observation": "image"}, DataInfo())
-    with pytest.raises(ValueError, match=r"policy\.observation"):
-        build_policy({"name": "mlp", "observation": "depth"}, DataInfo())
+    for name in HEADS:
+        with pytest.raises(ValueError, match=r"data\.image_size"):
+            build_policy({"name": name, "observation": "image"}, DataInfo(chunk_horizon=H, history=2))
+        with pytest.raises(ValueError, match=r"policy\.observation"):
+            build_policy({"name": name, "observation": "depth"}, INFO)
 
 
 class _PixelProbe(TensorDictModuleBase):
@@ -130,10 +216,12 @@ def test_evaluation_gives_the_policy_the_image_of_each_slot(image_dataset, tmp_p
 
 
 @pytest.mark.slow
-def test_a_tiny_image_job_trains_and_evaluates_through_the_recipe(tmp_path):
+@pytest.mark.parametrize("name", HEADS)
+def test_a_tiny_image_job_trains_and_evaluates_through_the_recipe(name, tmp_path, image_datasets):
     config = tiny(
         tmp_path,
-        tmp_path / "datasets",
+        image_datasets,
+        f"policy={name}",
         "policy.observation=image",
         f"data.image_size={S}",
         "optim.steps=6",

@@ -563,3 +563,18 @@ def test_settings_added_later_keep_earlier_run_names():
     assert config_differences(identity(old), identity(cfg)) == []
     assert run_name(compose_config("data.path=/some/dataset")) != run_name(cfg)
     assert run_name(compose_config("data.suite=dm_control")) != run_name(cfg)
+
+
+def test_image_observations_of_the_transformer_heads_keep_their_earlier_run_names():
+    # policy.observation came to act, octo_* and flow after their default jobs were run: these names were
+    # made by the code before it (the default job of each head, commit a7faf68), and must still be found.
+    from tar_rl.runs import identity, run_name
+
+    before = {"act": "90920e98", "flow": "0b5d8d0e", "octo_diffusion": "d2e8cb12"}
+    for head, digest in before.items():
+        cfg = compose_config(f"policy={head}")
+        assert cfg["policy"]["observation"] == "state"
+        assert run_name(cfg) == f"tar-{head}-s0-{digest}"
+        assert run_name(compose_config(f"policy={head}", "policy.observation=image")) != run_name(cfg)
+    # the mlp head had the setting from the start: it stays in its identity
+    assert identity(compose_config("policy=mlp"))["policy"]["observation"] == "state"

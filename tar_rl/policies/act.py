@@ -10,6 +10,10 @@ observation and the task:
 * **Encoder-decoder**: a transformer encoder over three tokens ``[z, obs, task]`` (learned
   positions), then a transformer decoder whose ``H`` learned query embeddings cross-attend to
   the encoded tokens; a linear layer maps each query's output to an action: ``[H, A]``.
+* **Image observations** (``observation="image"``, :mod:`tar_rl.policies.vision`): the state
+  tokens carry the proprioceptive state only and the encoder reads a fourth token, the current
+  camera image through the conv encoder (ACT reads camera features as tokens too); the CVAE
+  encoder sees the proprioceptive state and the actions, as in ACT, not the image.
 * **Inference**: ``z`` is the prior mean, zero; the CVAE encoder is not run, so the chunk is a
   deterministic function of the observation and the task (in ``eval()`` mode, without dropout).
 
@@ -42,6 +46,7 @@ from . import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import EXECUTIONS, ChunkedActor
 from .conditioning import TASK_CONDITIONING, TaskEncoder
 from .mlp import ObsNorm
+from .vision import PROPRIO_DIMS, image_encoder
 
 __all__ = ["ACTChunkLoss", "ACTConfig", "ACTModel", "gaussian_kl"]
 
@@ -77,6 +82,8 @@ class ACTConfig:
         task_conditioning: the task token: ``embedding`` (learned, one per task) or
             ``instruction`` (the task's instruction words).
         normalize_obs: standardise observations with the training data's statistics.
+        observation: ``state`` or ``image`` (the current camera image as an encoder token, plus
+            the proprioceptive state; needs a dataset with images, ``data.image_size > 0``).
     """
 
     name: str = "act"
@@ -94,6 +101,7 @@ class ACTConfig:
     ensemble_decay: float = 0.01
     task_conditioning: str = "embedding"
     normalize_obs: bool = True
+    observation: str = "state"
 
 
 def _check_config(cfg: ACTConfig, info: DataInfo) -> None:
@@ -139,6 +147,8 @@ class ACTModel(nn.Module):
         d, self.horizon, self.action_dim = cfg.dim, int(info.chunk_horizon), info.action_dim
         self.latent_dim = cfg.latent_dim
         self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std) if cfg.normalize_obs else nn.Identity()
+        self.image = image_encoder(cfg.observation, info.image_size, d)
+        self.obs_width = PROPRIO_DIMS if self.image is not None else info.obs_dim
 
         def layers(kind: type, n: int) -> nn.Module:
             layer = kind(d, cfg.heads, cfg.ffn_dim, cfg.dropout, batch_first=True, norm_first=True)
@@ -148,16 +158,16 @@ class ACTModel(nn.Module):
 
         # CVAE posterior q(z | obs, chunk)
         self.cvae_cls = nn.Parameter(torch.randn(d) * 0.02)
-        self.cvae_obs = nn.Linear(info.obs_dim, d)
+        self.cvae_obs = nn.Linear(self.obs_width, d)
         self.cvae_action = nn.Linear(info.action_dim, d)
         self.cvae_pos = nn.Parameter(torch.randn(2 + self.horizon, d) * 0.02)
         self.cvae_encoder = layers(nn.TransformerEncoderLayer, cfg.cvae_layers)
         self.cvae_out = nn.Linear(d, 2 * cfg.latent_dim)
-        # Policy: [z, obs, task] -> encoder -> H queries -> decoder -> actions
+        # Policy: [z, obs, task (, image)] -> encoder -> H queries -> decoder -> actions
         self.latent_in = nn.Linear(cfg.latent_dim, d)
-        self.obs_in = nn.Linear(info.obs_dim, d)
+        self.obs_in = nn.Linear(self.obs_width, d)
         self.task = TaskEncoder(cfg.task_conditioning, info.n_tasks, d, info.instructions)
-        self.token_pos = nn.Parameter(torch.randn(3, d) * 0.02)
+        self.token_pos = nn.Parameter(torch.randn(3 + int(self.image is not None), d) * 0.02)
         self.encoder = layers(nn.TransformerEncoderLayer, cfg.enc_layers)
         self.queries = nn.Parameter(torch.randn(self.horizon, d) * 0.02)
         self.decoder = layers(nn.TransformerDecoderLayer, cfg.dec_layers)
@@ -169,7 +179,7 @@ class ACTModel(nn.Module):
         """Mean and log-variance of ``q(z | obs, chunk)``.
 
         Args:
-            obs: ``[N, D]`` normalised observations.
+            obs: ``[N, D]`` normalised observations (the proprioceptive part with images).
             chunk: ``[N, H, A]`` expert action chunks.
             chunk_valid: ``[N, H]`` bool, True on real chunk entries (the others are not attended to).
 
@@ -187,10 +197,27 @@ class ACTModel(nn.Module):
         mu, logvar = self.cvae_out(out[:, 0]).chunk(2, dim=-1)
         return mu, logvar
 
-    def decode(self, obs: torch.Tensor, task_id: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """The chunk ``[N, H, A]`` from normalised observations ``[N, D]``, task ids ``[N]`` and latents ``[N, Z]``."""
+    @property
+    def reads_pixels(self) -> bool:
+        """True with image observations: the model needs ``pixels``."""
+        return self.image is not None
+
+    def _state(self, observation: torch.Tensor) -> torch.Tensor:
+        """Normalised observations ``[N, D]`` -> what the model reads of them (proprioception with images)."""
+        return self.norm(observation)[..., : self.obs_width]
+
+    def decode(
+        self, obs: torch.Tensor, task_id: torch.Tensor, z: torch.Tensor, pixels: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The chunk ``[N, H, A]`` from the state read ``[N, D']``, task ids ``[N]``, latents ``[N, Z]``
+        and, with image observations, ``pixels [N, 3, S, S]``."""
         n = obs.shape[0]
-        tokens = torch.stack([self.latent_in(z), self.obs_in(obs), self.task(task_id)], dim=1) + self.token_pos
+        tokens = [self.latent_in(z), self.obs_in(obs), self.task(task_id)]
+        if self.image is not None:
+            if pixels is None:
+                raise ValueError("this policy reads images (policy.observation=image): the input has no 'pixels'")
+            tokens.append(self.image(pixels.reshape(n, *pixels.shape[-3:])))
+        tokens = torch.stack(tokens, dim=1) + self.token_pos
         memory = self.encoder(tokens)
         out = self.decoder(self.queries.expand(n, -1, -1), memory)
         return self.head(out)
@@ -201,6 +228,7 @@ class ACTModel(nn.Module):
         task_id: torch.Tensor,
         action_chunk: torch.Tensor,
         action_chunk_valid: torch.Tensor,
+        pixels: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Training pass: posterior, a reparameterised sample of ``z``, the predicted chunk.
 
@@ -213,33 +241,41 @@ class ACTModel(nn.Module):
             task_id: ``[*B]`` int64.
             action_chunk: ``[*B, H, A]`` expert chunks.
             action_chunk_valid: ``[*B, H]`` bool, True on real chunk entries.
+            pixels: ``[*B, 3, S, S]`` uint8 camera images (image observations only).
 
         Returns:
             ``chunk`` ``[*B, H, A]``, ``mu`` and ``logvar`` ``[*B, Z]``.
         """
         batch = observation.shape[:-1]
-        obs = self.norm(observation.reshape(-1, observation.shape[-1]))
+        obs = self._state(observation.reshape(-1, observation.shape[-1]))
         chunk = action_chunk.reshape(-1, self.horizon, action_chunk.shape[-1])
         mu, logvar = self.posterior(obs, chunk, action_chunk_valid.reshape(-1, self.horizon))
         z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if self.training else mu
-        pred = self.decode(obs, task_id.reshape(-1), z)
+        pred = self.decode(obs, task_id.reshape(-1), z, pixels)
         return (
             pred.reshape(*batch, self.horizon, self.action_dim),
             mu.reshape(*batch, self.latent_dim),
             logvar.reshape(*batch, self.latent_dim),
         )
 
-    def predict_chunk(self, history: torch.Tensor, history_valid: torch.Tensor, task_id: torch.Tensor) -> torch.Tensor:
+    def predict_chunk(
+        self,
+        history: torch.Tensor,
+        history_valid: torch.Tensor,
+        task_id: torch.Tensor,
+        pixels: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Inference: the chunk ``[N, H, A]`` at ``z = 0`` from the current observation ``history[:, -1]``.
 
         Args:
             history: ``[N, K, D]`` observation window, oldest first (only the last entry is read).
             history_valid: ``[N, K]`` bool (unused: the current observation is always real).
             task_id: ``[N]`` int64.
+            pixels: ``[N, 3, S, S]`` uint8, the current images (image observations only).
         """
-        obs = self.norm(history[:, -1])
+        obs = self._state(history[:, -1])
         z = obs.new_zeros(obs.shape[0], self.latent_dim)
-        return self.decode(obs, task_id, z)
+        return self.decode(obs, task_id, z, pixels)
 
 
 class ACTChunkLoss(LossModule):
@@ -290,6 +326,8 @@ class ACTChunkLoss(LossModule):
                 Defaults to ``"action_chunk_valid"``.
             valid (NestedKey): ``[*B]`` bool, True on real steps (the KL mean's mask; absent: every
                 step). Defaults to ``("collector", "mask")``.
+            pixels (NestedKey): ``[*B, 3, S, S]`` uint8 images, read only by a model with image
+                observations. Defaults to ``"pixels"``.
         """
 
         observation: NestedKey = "observation"
@@ -297,6 +335,7 @@ class ACTChunkLoss(LossModule):
         action_chunk: NestedKey = "action_chunk"
         action_chunk_valid: NestedKey = "action_chunk_valid"
         valid: NestedKey = ("collector", "mask")
+        pixels: NestedKey = "pixels"
 
         @property
         def action(self) -> NestedKey:
@@ -324,7 +363,8 @@ class ACTChunkLoss(LossModule):
     @property
     def in_keys(self) -> list[NestedKey]:
         k = self.tensor_keys
-        return [k.observation, k.task_id, k.action_chunk, k.action_chunk_valid, k.valid]
+        keys = [k.observation, k.task_id, k.action_chunk, k.action_chunk_valid, k.valid]
+        return keys + ([k.pixels] if self.model.reads_pixels else [])
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -344,7 +384,10 @@ class ACTChunkLoss(LossModule):
         if valid is None:
             valid = torch.ones(batch, dtype=torch.bool, device=target.device)
         valid = valid.reshape(batch)
-        pred, mu, logvar = self.model(tensordict.get(k.observation), tensordict.get(k.task_id), target, chunk_valid)
+        pixels = tensordict.get(k.pixels) if self.model.reads_pixels else None
+        pred, mu, logvar = self.model(
+            tensordict.get(k.observation), tensordict.get(k.task_id), target, chunk_valid, pixels
+        )
         error = (pred.float() - target.float()).abs()
         error = torch.where(chunk_valid[..., None], error, torch.zeros((), dtype=error.dtype, device=error.device))
         kl = gaussian_kl(mu.float(), logvar.float())
@@ -361,12 +404,14 @@ def _build_act(cfg: ACTConfig, info: DataInfo) -> Policy:
         execution=cfg.execution,
         execute_steps=cfg.execute_steps,
         ensemble_decay=cfg.ensemble_decay,
+        images=model.reads_pixels,
     )
+    keys = ("observation", "task_id", "action", "action_chunk", "action_chunk_valid")
     return Policy(
         actor=actor,
         loss=ACTChunkLoss(model, kl_weight=cfg.kl_weight),
         # "action" is not read by the loss; the recipe's weight recording plots its gripper entry.
-        keys=("observation", "task_id", "action", "action_chunk", "action_chunk_valid"),
+        keys=keys + (("pixels",) if model.reads_pixels else ()),
         event_valid="action_chunk_valid",
         loss_key="loss_chunk",
     )

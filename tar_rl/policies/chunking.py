@@ -50,9 +50,12 @@ class ChunkedActor(TensorDictModuleBase):
         execution: ``"ensemble"`` or ``"open_loop"``.
         execute_steps: for ``open_loop``, actions executed per chunk, ``1 <= k <= H``.
         ensemble_decay: ``m`` of the temporal ensemble's weights ``exp(-m * i)`` (ACT: 0.01).
+        images: the model reads the current camera image: ``pixels`` ``[N, 3, S, S]`` is an input
+            key and goes to ``predict_chunk(..., pixels=...)``.
 
-    Reads ``observation`` ``[N, D]``, ``task_id`` ``[N]`` (or ``[N, 1]``) and ``is_init``
-    ``[N, 1]`` (absent: every call starts new rollouts); writes ``action`` ``[N, A]``.
+    Reads ``observation`` ``[N, D]``, ``task_id`` ``[N]`` (or ``[N, 1]``), ``is_init``
+    ``[N, 1]`` (absent: every call starts new rollouts) and, with ``images``, ``pixels``; writes
+    ``action`` ``[N, A]``.
     """
 
     in_keys = ["observation", "task_id", "is_init"]
@@ -66,6 +69,7 @@ class ChunkedActor(TensorDictModuleBase):
         execution: str = "ensemble",
         execute_steps: int = 1,
         ensemble_decay: float = 0.01,
+        images: bool = False,
     ):
         super().__init__()
         if execution not in EXECUTIONS:
@@ -80,6 +84,9 @@ class ChunkedActor(TensorDictModuleBase):
         self.horizon, self.history = int(horizon), int(history)
         self.execution, self.execute_steps = execution, int(execute_steps)
         self.ensemble_decay = float(ensemble_decay)
+        self.images = bool(images)
+        if self.images:
+            self.in_keys = [*self.in_keys, "pixels"]
         self.reset()
 
     def reset(self) -> None:
@@ -108,10 +115,11 @@ class ChunkedActor(TensorDictModuleBase):
             self._window = obs.new_zeros(n, k, obs.shape[-1])
             self._window_valid = torch.zeros(n, k, dtype=torch.bool, device=obs.device)
         self._push(obs, init)
+        pixels = tensordict.get("pixels") if self.images else None
         if self.execution == "ensemble":
-            action = self._ensemble(task, init)
+            action = self._ensemble(task, init, pixels)
         else:
-            action = self._open_loop(task, init)
+            action = self._open_loop(task, init, pixels)
         tensordict.set("action", action.clamp(-1.0, 1.0))
         return tensordict
 
@@ -126,15 +134,16 @@ class ChunkedActor(TensorDictModuleBase):
         self._window = torch.where(init[:, None, None], fresh, window)
         self._window_valid = torch.where(init[:, None], fresh_valid, valid)
 
-    def _predict(self, task: torch.Tensor) -> torch.Tensor:
-        chunk = self.model.predict_chunk(self._window, self._window_valid, task)
+    def _predict(self, task: torch.Tensor, pixels: torch.Tensor | None) -> torch.Tensor:
+        images = {"pixels": pixels} if self.images else {}
+        chunk = self.model.predict_chunk(self._window, self._window_valid, task, **images)
         n = self._window.shape[0]
         if chunk.ndim != 3 or chunk.shape[:2] != (n, self.horizon):
             raise ValueError(f"predict_chunk returned shape {list(chunk.shape)}, expected [{n}, {self.horizon}, A]")
         return chunk
 
-    def _ensemble(self, task: torch.Tensor, init: torch.Tensor) -> torch.Tensor:
-        chunk = self._predict(task)
+    def _ensemble(self, task: torch.Tensor, init: torch.Tensor, pixels: torch.Tensor | None) -> torch.Tensor:
+        chunk = self._predict(task, pixels)
         n, h, a = chunk.shape
         if self._sum is None:
             self._sum = chunk.new_zeros(n, h, a)
@@ -150,7 +159,7 @@ class ChunkedActor(TensorDictModuleBase):
         self._weight = self._weight * keep[:, None] + 1.0
         return self._sum[:, 0] / self._weight[:, 0, None]
 
-    def _open_loop(self, task: torch.Tensor, init: torch.Tensor) -> torch.Tensor:
+    def _open_loop(self, task: torch.Tensor, init: torch.Tensor, pixels: torch.Tensor | None) -> torch.Tensor:
         n = init.shape[0]
         if self._chunk is None:
             need = torch.ones_like(init)
@@ -158,7 +167,7 @@ class ChunkedActor(TensorDictModuleBase):
         else:
             need = init | (self._age >= self.execute_steps)
         if bool(need.any()):
-            chunk = self._predict(task)
+            chunk = self._predict(task, pixels)
             self._chunk = chunk if self._chunk is None else torch.where(need[:, None, None], chunk, self._chunk)
             self._age = torch.where(need, torch.zeros_like(self._age), self._age)
         action = self._chunk[torch.arange(n, device=init.device), self._age]

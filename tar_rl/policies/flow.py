@@ -128,11 +128,11 @@ class FlowPolicy(SeededSampling):
             h = block(h)
         return self.out(h[:, 1:])
 
-    def step_loss(self, history, history_valid, task_id, chunk) -> torch.Tensor:
+    def step_loss(self, history, history_valid, task_id, chunk, pixels=None) -> torch.Tensor:
         """``[B, L, H, A]``: ``(v_hat(x_tau, tau) - (noise - chunk)) ** 2`` per chunk element."""
         _chunk_shapes(chunk, self.horizon, self.action_dim)
         lead = chunk.shape[:-2]
-        features = self.backbone(history, history_valid, task_id).reshape(-1, self.backbone.dim)
+        features = self.backbone(history, history_valid, task_id, pixels).reshape(-1, self.backbone.dim)
         actions = chunk.float().reshape(-1, self.horizon, self.action_dim)
         tau = sample_flow_time(actions.shape[0], self.time_distribution, device=actions.device)
         noise = torch.randn_like(actions)
@@ -142,8 +142,8 @@ class FlowPolicy(SeededSampling):
         return (v - (noise - actions)).square().reshape(*lead, self.horizon, self.action_dim)
 
     @torch.no_grad()
-    def predict_chunk(self, history, history_valid, task_id) -> torch.Tensor:
-        features = self.backbone(history, history_valid, task_id)
+    def predict_chunk(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
+        features = self.backbone(history, history_valid, task_id, pixels)
         n = features.shape[0]
         gen = self.sampling_generator(features.device)
         x = self.initial_noise(n, (self.horizon, self.action_dim), gen, features.device)

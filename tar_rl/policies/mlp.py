@@ -12,7 +12,7 @@ from torchrl.objectives import BCLoss
 
 from . import DataInfo, Policy, PolicySpec, register_policy
 from .conditioning import TaskEncoder
-from .vision import OBSERVATIONS, PROPRIO_DIMS, ConvEncoder
+from .vision import PROPRIO_DIMS, image_encoder
 
 __all__ = ["MLPConfig", "MLPPolicy", "ObsNorm"]
 
@@ -83,15 +83,9 @@ class MLPPolicy(nn.Module):
             raise ValueError(f"policy.hidden must be a non-empty list of positive widths, got {list(cfg.hidden)}")
         if cfg.task_conditioning in ("embedding", "instruction") and cfg.task_dim < 1:
             raise ValueError(f"policy.task_dim must be >= 1, got {cfg.task_dim}")
-        if cfg.observation not in OBSERVATIONS:
-            raise ValueError(f"policy.observation must be one of {list(OBSERVATIONS)}, got {cfg.observation!r}")
         self.conditioning = cfg.task_conditioning
         self.n_tasks = info.n_tasks
-        self.image = None
-        if cfg.observation == "image":
-            self.image = ConvEncoder(info.image_size, cfg.image_dim) if info.image_size else None
-            if self.image is None:
-                raise ValueError("policy.observation=image needs a dataset with images: set data.image_size (e.g. 64)")
+        self.image = image_encoder(cfg.observation, info.image_size, cfg.image_dim)
         if cfg.normalize_obs:
             self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std)
         else:

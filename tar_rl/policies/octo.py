@@ -14,6 +14,10 @@ CPU) reads a window of ``K`` observations and the task and returns one feature v
   and invalid history entries (before the episode start, ``observation_history_valid`` False) are
   masked out of every attention: they cannot change the output;
 * the readout tokens' outputs are mean-pooled and layer-normalised: ``[N, dim]`` features.
+* with ``observation="image"`` (:mod:`tar_rl.policies.vision`) the observation tokens carry the
+  proprioceptive state only, and the current step's camera image enters as one more token, after
+  the observation tokens (the conv encoder's features, ``dim`` wide): it attends to the task, the
+  valid observation tokens and itself, and the readouts attend to it.
 
 Two heads on it, the head being the only difference (the backbone class and its config fields
 are shared):
@@ -56,6 +60,7 @@ from . import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import EXECUTIONS, ChunkedActor
 from .conditioning import TASK_CONDITIONING, TaskEncoder
 from .mlp import ObsNorm
+from .vision import PROPRIO_DIMS, image_encoder
 
 __all__ = [
     "SAMPLERS",
@@ -95,6 +100,9 @@ class OctoConfig:
         execution: inference: ``ensemble`` (ACT's temporal ensembling) or ``open_loop``.
         execute_steps: for ``open_loop``, actions executed per predicted chunk (``1..H``).
         ensemble_decay: ``m`` of the ensemble's weights ``exp(-m * i)`` (ACT: 0.01).
+        observation: ``state`` (the state vectors of the window) or ``image`` (the current camera
+            image as a token, plus the proprioceptive state of the window; needs a dataset with
+            images, ``data.image_size > 0``).
     """
 
     name: str = "octo"
@@ -108,6 +116,7 @@ class OctoConfig:
     execution: str = "ensemble"
     execute_steps: int = 1
     ensemble_decay: float = 0.01
+    observation: str = "state"
 
 
 @dataclass
@@ -190,8 +199,9 @@ class TransformerBlock(nn.Module):
 class OctoBackbone(nn.Module):
     """Task token + ``K`` observation tokens + readout tokens -> pooled readout features (module docstring).
 
-    ``forward(history [N, K, D], history_valid [N, K] bool (True: a real observation), task_id [N])
-    -> [N, dim]``. Any leading shape: ``[B, L, K, D]`` gives ``[B, L, dim]``.
+    ``forward(history [N, K, D], history_valid [N, K] bool (True: a real observation), task_id [N],
+    pixels [N, 3, S, S] uint8 (image observations only)) -> [N, dim]``. Any leading shape:
+    ``[B, L, K, D]`` gives ``[B, L, dim]``.
     """
 
     def __init__(self, cfg: OctoConfig, info: DataInfo):
@@ -201,31 +211,49 @@ class OctoBackbone(nn.Module):
         if self.history < 1:
             raise ValueError(f"data.history must be >= 1, got {info.history}")
         self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std) if cfg.normalize_obs else nn.Identity()
-        self.obs_proj = nn.Linear(info.obs_dim, self.dim)
+        self.image = image_encoder(cfg.observation, info.image_size, self.dim)
+        self.obs_width = PROPRIO_DIMS if self.image is not None else info.obs_dim
+        self.obs_proj = nn.Linear(self.obs_width, self.dim)
         self.time_pos = nn.Parameter(torch.randn(self.history, self.dim) * 0.02)
         self.task = TaskEncoder(cfg.task_conditioning, info.n_tasks, self.dim, info.instructions)
         self.readout = nn.Parameter(torch.randn(int(cfg.readouts), self.dim) * 0.02)
         self.blocks = nn.ModuleList(TransformerBlock(self.dim, int(cfg.heads), cfg.dropout) for _ in range(cfg.layers))
         self.out_norm = nn.LayerNorm(self.dim)
-        self.register_buffer("block_mask", self.attention_rules(self.history, int(cfg.readouts)), persistent=False)
+        images = int(self.image is not None)
+        self.register_buffer(
+            "block_mask", self.attention_rules(self.history, int(cfg.readouts), images), persistent=False
+        )
+
+    @property
+    def reads_pixels(self) -> bool:
+        """True with image observations: ``forward`` needs ``pixels``."""
+        return self.image is not None
 
     @staticmethod
-    def attention_rules(k: int, r: int) -> torch.Tensor:
-        """The block structure ``[S, S]`` bool (row: query, column: key; True: may attend), ``S = 1 + k + r``.
+    def attention_rules(k: int, r: int, images: int = 0) -> torch.Tensor:
+        """The block structure ``[S, S]`` bool (row: query, column: key; True: may attend),
+        ``S = 1 + k + images + r``.
 
-        Token order: task, observations (oldest first), readouts.
+        Token order: task, observations (oldest first), the current image (``images`` 1), readouts.
         """
-        s = 1 + k + r
+        s = 1 + k + images + r
         rules = torch.zeros(s, s, dtype=torch.bool)
-        obs, read = slice(1, 1 + k), slice(1 + k, s)
+        obs, img, read = slice(1, 1 + k), slice(1 + k, 1 + k + images), slice(1 + k + images, s)
         rules[0, 0] = True  # the task token: itself
         rules[obs, 0] = True  # observations: the task ...
         rules[obs, obs] = torch.ones(k, k, dtype=torch.bool).tril()  # ... and observations up to their own time
-        rules[read, : 1 + k] = True  # readouts: task and every observation ...
+        rules[img, : 1 + k + images] = True  # the image: task, every observation and itself
+        rules[read, : 1 + k + images] = True  # readouts: task, every observation, the image ...
         rules[read, read] = True  # ... and the readouts; nothing else attends to a readout
         return rules
 
-    def forward(self, history: torch.Tensor, history_valid: torch.Tensor, task_id: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self,
+        history: torch.Tensor,
+        history_valid: torch.Tensor,
+        task_id: torch.Tensor,
+        pixels: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         lead = history.shape[:-2]
         if history.shape[-2] != self.history:
             raise ValueError(
@@ -237,12 +265,17 @@ class OctoBackbone(nn.Module):
         n = history.shape[0]
         # Invalid entries are zeroed as well as masked: nothing of them (not even a NaN) gets through.
         obs = torch.where(valid[..., None], self.norm(history), torch.zeros((), dtype=history.dtype))
-        obs_tokens = self.obs_proj(obs) + self.time_pos
+        obs_tokens = self.obs_proj(obs[..., : self.obs_width]) + self.time_pos
         task_token = self.task(task_id.reshape(n))[:, None]
         readouts = self.readout.expand(n, -1, -1)
-        x = torch.cat([task_token.to(obs_tokens.dtype), obs_tokens, readouts.to(obs_tokens.dtype)], dim=1)
+        tokens = [task_token.to(obs_tokens.dtype), obs_tokens]
+        if self.image is not None:
+            if pixels is None:
+                raise ValueError("this policy reads images (policy.observation=image): the input has no 'pixels'")
+            tokens.append(self.image(pixels.reshape(n, *pixels.shape[-3:]))[:, None].to(obs_tokens.dtype))
+        x = torch.cat([*tokens, readouts.to(obs_tokens.dtype)], dim=1)
         r = self.readout.shape[0]
-        keys = torch.cat([valid.new_ones(n, 1), valid, valid.new_ones(n, r)], dim=1)  # [N, S]
+        keys = torch.cat([valid.new_ones(n, 1), valid, valid.new_ones(n, x.shape[1] - 1 - self.history)], dim=1)
         mask = (self.block_mask[None] & keys[:, None, :])[:, None]  # [N, 1, S, S]
         for block in self.blocks:
             x = block(x, mask)
@@ -365,17 +398,17 @@ class OctoLinear(nn.Module):
         self.backbone = OctoBackbone(cfg, info)
         self.head = nn.Linear(int(cfg.dim), self.horizon * self.action_dim)
 
-    def forward(self, history, history_valid, task_id) -> torch.Tensor:
-        features = self.backbone(history, history_valid, task_id)
+    def forward(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
+        features = self.backbone(history, history_valid, task_id, pixels)
         return self.head(features).unflatten(-1, (self.horizon, self.action_dim))
 
-    def step_loss(self, history, history_valid, task_id, chunk) -> torch.Tensor:
+    def step_loss(self, history, history_valid, task_id, chunk, pixels=None) -> torch.Tensor:
         """``[B, L, H, A]`` squared errors of the predicted chunk."""
         _chunk_shapes(chunk, self.horizon, self.action_dim)
-        return (self(history, history_valid, task_id).float() - chunk.float()).square()
+        return (self(history, history_valid, task_id, pixels).float() - chunk.float()).square()
 
-    def predict_chunk(self, history, history_valid, task_id) -> torch.Tensor:
-        return self(history, history_valid, task_id)
+    def predict_chunk(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
+        return self(history, history_valid, task_id, pixels)
 
 
 class ResidualMLP(nn.Module):
@@ -440,10 +473,10 @@ class OctoDiffusion(SeededSampling):
         x = torch.cat([features, temb.to(features.dtype), noisy.flatten(-2).to(features.dtype)], dim=-1)
         return self.denoiser(x).unflatten(-1, (self.horizon, self.action_dim))
 
-    def step_loss(self, history, history_valid, task_id, chunk) -> torch.Tensor:
+    def step_loss(self, history, history_valid, task_id, chunk, pixels=None) -> torch.Tensor:
         """``[B, L, H, A]``: ``(eps_hat - eps) ** 2`` , ``t ~ U{0..T-1}``, ``eps ~ N(0, I)`` per step (global RNG)."""
         _chunk_shapes(chunk, self.horizon, self.action_dim)
-        features = self.backbone(history, history_valid, task_id)
+        features = self.backbone(history, history_valid, task_id, pixels)
         chunk = chunk.float()
         t = torch.randint(self.train_steps, chunk.shape[:-2], device=chunk.device)
         noise = torch.randn_like(chunk)
@@ -452,8 +485,8 @@ class OctoDiffusion(SeededSampling):
         return (self.eps(noisy, t, features).float() - noise).square()
 
     @torch.no_grad()
-    def predict_chunk(self, history, history_valid, task_id) -> torch.Tensor:
-        features = self.backbone(history, history_valid, task_id)
+    def predict_chunk(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
+        features = self.backbone(history, history_valid, task_id, pixels)
         n = features.shape[0]
         gen = self.sampling_generator(features.device)
         x = self.initial_noise(n, (self.horizon, self.action_dim), gen, features.device)
@@ -478,6 +511,7 @@ class ChunkLoss(LossModule):
     """Per-step loss of a chunked head on ``[B, L]`` segments: ``[B, L, H, A]``, never reduced.
 
     Calls ``model.step_loss(observation_history, observation_history_valid, task_id, action_chunk)``
+    (plus ``pixels=`` for a model with image observations, ``model.backbone.reads_pixels``)
     (the squared error of a regression head, the noise or velocity regression error of a generative
     one) and writes it as ``loss_name``. Padded chunk entries (``action_chunk_valid`` False) and
     padded steps are left in the output: ``TARLoss`` averages over the valid chunk entries
@@ -504,6 +538,7 @@ class ChunkLoss(LossModule):
                 find it and corrupt the chunk the head learns from.
             action_valid: ``[B, L, H]`` bool, True on chunk entries that are real steps (a prefix);
                 optional.
+            pixels: ``[B, L, 3, S, S]`` uint8 camera images, read by models with image observations only.
         """
 
         observation_history: str = "observation_history"
@@ -511,6 +546,7 @@ class ChunkLoss(LossModule):
         task_id: str = "task_id"
         action: str = "action_chunk"
         action_valid: str = "action_chunk_valid"
+        pixels: str = "pixels"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -529,7 +565,8 @@ class ChunkLoss(LossModule):
     @property
     def in_keys(self) -> list:
         k = self.tensor_keys
-        return [k.observation_history, k.observation_history_valid, k.task_id, k.action, k.action_valid]
+        keys = [k.observation_history, k.observation_history_valid, k.task_id, k.action, k.action_valid]
+        return keys + ([k.pixels] if self.model.backbone.reads_pixels else [])
 
     @property
     def out_keys(self) -> list:
@@ -541,11 +578,13 @@ class ChunkLoss(LossModule):
         valid = tensordict.get(k.action_valid, None)
         if valid is not None:
             chunk = hold_last_valid(chunk, valid)
+        images = {"pixels": tensordict.get(k.pixels)} if self.model.backbone.reads_pixels else {}
         loss = self.model.step_loss(
             tensordict.get(k.observation_history),
             tensordict.get(k.observation_history_valid),
             tensordict.get(k.task_id),
             chunk,
+            **images,
         )
         return TensorDict({self.loss_name: loss}, batch_size=[])
 
@@ -563,6 +602,7 @@ CHUNK_KEYS = (
 
 def chunked_policy(model: nn.Module, cfg: OctoConfig, info: DataInfo, loss_name: str) -> Policy:
     """The :class:`Policy` of a chunked head: a ``ChunkedActor`` and a ``ChunkLoss`` sharing ``model``."""
+    images = model.backbone.reads_pixels
     actor = ChunkedActor(
         model,
         horizon=info.chunk_horizon,
@@ -570,8 +610,10 @@ def chunked_policy(model: nn.Module, cfg: OctoConfig, info: DataInfo, loss_name:
         execution=cfg.execution,
         execute_steps=cfg.execute_steps,
         ensemble_decay=cfg.ensemble_decay,
+        images=images,
     )
-    return Policy(actor=actor, loss=ChunkLoss(model, loss_name), keys=CHUNK_KEYS, event_valid="action_chunk_valid")
+    keys = CHUNK_KEYS + (("pixels",) if images else ())
+    return Policy(actor=actor, loss=ChunkLoss(model, loss_name), keys=keys, event_valid="action_chunk_valid")
 
 
 def _build_linear(cfg: OctoLinearConfig, info: DataInfo) -> Policy:

@@ -4,6 +4,11 @@ With ``observation="image"`` a head sees the camera image ``pixels`` (``[..., 3,
 :mod:`tar_rl.collectors.render`) and the robot's own state only: the first :data:`PROPRIO_DIMS`
 entries of MetaWorld's observation (hand position x, y, z and the gripper opening). The object
 and goal positions of the state vector are left out: they must be seen in the image.
+
+Every head takes the switch (``policy.observation=image``): the ``mlp`` head concatenates the image
+features to the proprioceptive state; the transformer heads (``act``, ``octo_*``, ``flow``) read
+the image of the current step as one more token (see their modules). Only the current step's image
+is stored and seen: the observation history of the Octo-style backbone holds proprioception.
 """
 
 from __future__ import annotations
@@ -11,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["OBSERVATIONS", "PROPRIO_DIMS", "ConvEncoder"]
+__all__ = ["OBSERVATIONS", "PROPRIO_DIMS", "ConvEncoder", "image_encoder"]
 
 OBSERVATIONS = ("state", "image")
 PROPRIO_DIMS = 4
@@ -58,3 +63,19 @@ class ConvEncoder(nn.Module):
             )
         x = pixels.reshape(-1, *pixels.shape[-3:]).float() / 255.0 - 0.5
         return self.out(self.conv(x)).reshape(*lead, -1)
+
+
+def image_encoder(observation: str, image_size: int, out_dim: int) -> ConvEncoder | None:
+    """The conv encoder of a head with ``policy.observation=observation`` (``None`` for ``state``).
+
+    Raises:
+        ValueError: an unknown observation kind, or ``image`` on a dataset without images
+            (``image_size`` 0).
+    """
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"policy.observation must be one of {list(OBSERVATIONS)}, got {observation!r}")
+    if observation == "state":
+        return None
+    if not image_size:
+        raise ValueError("policy.observation=image needs a dataset with images: set data.image_size (e.g. 64)")
+    return ConvEncoder(image_size, out_dim)
