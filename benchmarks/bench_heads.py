@@ -17,6 +17,9 @@ over rounds are reported.
   bfloat16 autocast (as the recipe does; ``--no-amp`` to disable) and ends with a synchronise.
   Reported per head: ms per step and segments/s (``B / time``), their ratio to ``mlp``, and the TAR
   overhead ``tar / uniform`` (ratio of medians, and the median of the per-round ratio, "paired").
+  ``tar`` uses ``TARLoss``'s default ``compile_weights="auto"`` (the weighting compiled on CUDA
+  with triton, eager on the CPU; ``--compile-weights`` to choose); where that compiles, a third
+  variant ``tar_eager`` (the weighting eager) is timed in the same rounds, so one run shows both.
 * ``inference``: one batched environment step of ``N`` envs (default 16) through the head's
   actor (for chunked heads the ``ChunkedActor`` with its default execution), as the evaluator
   calls it: a fixed sequence of observations, the first call starting every rollout
@@ -152,10 +155,18 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def make_step(head: str, objective: str, batch: TensorDict, device: torch.device, amp: bool, seed: int):
+def make_step(
+    head: str,
+    objective: str,
+    batch: TensorDict,
+    device: torch.device,
+    amp: bool,
+    seed: int,
+    compile_weights: str = "auto",
+):
     """One training step of ``head`` under ``objective`` on its own copy and its own AdamW."""
     policy = build(head, seed)
-    loss = TARLoss(policy.loss, objective, loss_key=policy.loss_key)
+    loss = TARLoss(policy.loss, objective, loss_key=policy.loss_key, compile_weights=compile_weights)
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)
     loss = loss.to(device)
@@ -203,12 +214,21 @@ def make_inference(head: str, n_envs: int, calls: int, device: torch.device, see
 # ---------------------------------------------------------------------------------------------
 
 
+def variants(args, device) -> tuple[str, ...]:
+    """``uniform``, ``tar`` and, where ``tar``'s weighting is compiled, ``tar_eager``."""
+    compiled = TARLoss(build(BASELINE_HEAD, 0).loss, "tar", compile_weights=args.compile_weights)
+    compiled = compiled._weight_function(device) is not compiled.weighting.weights
+    return OBJECTIVES + (("tar_eager",) if compiled else ())
+
+
 def bench_train(heads, args, device) -> list[dict]:
     batch = make_batch(args.batch, args.slice_len, args.seed).to(device)
     steps: dict[tuple[str, str], Callable[[], None]] = {}
+    names = variants(args, device)
     for head in heads:
-        for objective in OBJECTIVES:
-            steps[head, objective] = make_step(head, objective, batch, device, args.amp, args.seed)
+        for variant in names:
+            objective, mode = ("tar", "never") if variant == "tar_eager" else (variant, args.compile_weights)
+            steps[head, variant] = make_step(head, objective, batch, device, args.amp, args.seed, mode)
     for step in steps.values():
         for _ in range(args.warmup):
             step()
@@ -219,7 +239,7 @@ def bench_train(heads, args, device) -> list[dict]:
     rate = {k: median_iqr(args.batch / t) for k, t in times.items()}
     rows = []
     for head in heads:
-        for objective in OBJECTIVES:
+        for objective in names:
             key = (head, objective)
             common = dict(head=head, variant=objective, baseline=base, n=args.reps)
             med, iqr = ms[key]
@@ -244,20 +264,21 @@ def bench_train(heads, args, device) -> list[dict]:
                     **common,
                 )
             )
-        med, iqr = median_iqr(times[head, "tar"] / times[head, "uniform"])
-        rows.append(
-            dict(
-                section="tar_overhead",
-                head=head,
-                variant="tar",
-                median=med,
-                iqr=iqr,
-                unit="ratio",
-                ratio_to_baseline=ms[head, "tar"][0] / ms[head, "uniform"][0],
-                baseline="uniform",
-                n=args.reps,
+        for variant in names[1:]:
+            med, iqr = median_iqr(times[head, variant] / times[head, "uniform"])
+            rows.append(
+                dict(
+                    section="tar_overhead",
+                    head=head,
+                    variant=variant,
+                    median=med,
+                    iqr=iqr,
+                    unit="ratio",
+                    ratio_to_baseline=ms[head, variant][0] / ms[head, "uniform"][0],
+                    baseline="uniform",
+                    n=args.reps,
+                )
             )
-        )
     return rows
 
 
@@ -302,7 +323,8 @@ def render(df: pd.DataFrame, header: list[str]) -> str:
     lines = [*header, ""]
     train = df[df.section == "train_step"].set_index(["head", "variant"])
     rate = df[df.section == "throughput"].set_index(["head", "variant"])
-    over = df[df.section == "tar_overhead"].set_index("head")
+    over = df[(df.section == "tar_overhead") & (df.variant == "tar")].set_index("head")
+    eager = df[(df.section == "tar_overhead") & (df.variant == "tar_eager")].set_index("head")
     infer = df[df.section == "inference"].set_index("head")
     heads = list(dict.fromkeys(df["head"]))
     lines.append(
@@ -324,7 +346,8 @@ def render(df: pd.DataFrame, header: list[str]) -> str:
             continue
         p = over.loc[head, "median"]
         verdict = "meets" if p <= TAR_TARGET else "misses"
-        lines.append(f"TAR overhead {head}: paired {p:.4f} -> {verdict} the target <= {TAR_TARGET}")
+        without = f" (weighting eager: {eager.loc[head, 'median']:.4f})" if head in eager.index else ""
+        lines.append(f"TAR overhead {head}: paired {p:.4f} -> {verdict} the target <= {TAR_TARGET}{without}")
     return "\n".join(lines)
 
 
@@ -343,6 +366,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--calls", type=int, default=None, help="interleaved inference rounds (default 200; quick 10)")
     p.add_argument("--amp", action=argparse.BooleanOptionalAction, default=True, help="bf16 autocast on CUDA")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--compile-weights",
+        default="auto",
+        choices=["auto", "always", "never"],
+        help="TARLoss(compile_weights=...) of the tar variant (default auto: compiled on CUDA with triton)",
+    )
     args = p.parse_args(argv)
     args.reps = args.reps if args.reps is not None else (3 if args.quick else 30)
     args.warmup = args.warmup if args.warmup is not None else (1 if args.quick else 3)

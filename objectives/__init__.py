@@ -4,7 +4,7 @@ Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.t
 """
 
 from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
-from .tar_loss import TARLoss, segment_mean
+from .tar_loss import COMPILE_MODES, TARLoss, segment_mean
 from .weighting import (
     CAP_MODES,
     DEFAULT_EPS,
@@ -26,6 +26,7 @@ from .weighting import (
 
 __all__ = [
     "CAP_MODES",
+    "COMPILE_MODES",
     "DEFAULT_EPS",
     "DEFAULT_GAMMA",
     "DEFAULT_W_MAX",

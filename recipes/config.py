@@ -74,6 +74,9 @@ class ObjectiveConfig:
         shape: ``linear`` or ``cosine`` ramp.
         perturb_fraction: for ``perturb_high``/``perturb_low``: fraction of a segment's valid steps perturbed.
         perturb_scale: for the perturbation controls: std of the Gaussian action noise (action units).
+        compile: ``torch.compile`` the weighting (``tar``, ``invert``): ``auto`` (on CUDA with
+            triton: a GPU step otherwise pays ~0.5 ms of tiny kernel launches for it), ``always``
+            or ``never``. Not part of a run's identity (the weights agree up to float rounding).
     """
 
     name: str = "tar"
@@ -86,6 +89,7 @@ class ObjectiveConfig:
     shape: str = "linear"
     perturb_fraction: float = 0.25
     perturb_scale: float = 0.1
+    compile: str = "auto"
 
 
 @dataclass

@@ -50,7 +50,7 @@ from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
 from tar_rl.data import DatasetError, DemoDataset, build_dataset, load_dataset
 from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
 from tar_rl.metrics import summarize
-from tar_rl.objectives import WEIGHTINGS, MixSchedule, TARLoss, window_weights
+from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, MixSchedule, TARLoss, window_weights
 from tar_rl.policies import POLICIES, DataInfo, Policy, build_policy
 from tar_rl.runs import (
     CHECKPOINT,
@@ -311,6 +311,7 @@ def validate(config: dict) -> dict:
     _check_choice("policy.name", config["policy"]["name"], list(POLICIES))
     _check_choice("objective.cap", obj["cap"], ["paper", "exact"])
     _check_choice("objective.shape", obj["shape"], ["linear", "cosine"])
+    _check_choice("objective.compile", obj["compile"], list(COMPILE_MODES))
     for key in ("start", "ramp"):
         if not 0 <= obj[key] <= 1:
             raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
@@ -466,6 +467,7 @@ def make_objective(config: dict, policy: Policy) -> TARLoss:
         perturb_scale=obj["perturb_scale"],
         seed=config["seed"],
         loss_key=policy.loss_key,
+        compile_weights=obj.get("compile", "auto"),
     )
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)

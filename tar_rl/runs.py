@@ -48,6 +48,7 @@ CHECKPOINT_FORMAT = 1
 # Settings that do not change what a run computes: left out of the run's identity (its directory
 # name and the check made when resuming).
 NOT_IDENTITY = (
+    ("objective", "compile"),
     ("data", "workers"),
     ("data", "root"),
     ("eval", "workers"),

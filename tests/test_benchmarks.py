@@ -82,3 +82,17 @@ def test_bench_heads_quick_covers_every_registered_head(tmp_path):
     step = df[df.section == "train_step"].set_index(["head", "variant"])["median"]
     rate = df[df.section == "throughput"].set_index(["head", "variant"])["median"]
     assert ((rate * step / 1e3 - 4).abs() < 1e-9).all()
+
+
+@pytest.mark.slow
+def test_bench_heads_times_the_eager_weighting_beside_a_compiled_one(tmp_path):
+    spec = importlib.util.spec_from_file_location("bench_heads", BENCH.parent / "bench_heads.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "h.csv"
+    args = ["--quick", "--heads", "mlp", "--batch", "4", "--slice-len", "4", "--envs", "2", "--calls", "3"]
+    bench.main([*args, "--out", str(out), "--compile-weights", "always"])
+    over = pd.read_csv(out).query("section == 'tar_overhead'")
+    assert set(over.variant) == {"tar", "tar_eager"} and (over["median"] > 0).all()
+    bench.main([*args, "--out", str(out)])  # auto on the CPU: nothing compiled, no eager twin
+    assert set(pd.read_csv(out).query("section == 'tar_overhead'").variant) == {"tar"}

@@ -135,6 +135,7 @@ def test_unknown_keys_and_options_are_refused_at_composition(override, error, na
         (["data.tasks=[]"], "data.tasks is empty"),
         (["eval.horizon=501"], "eval.horizon"),
         (["objective.cap=loose"], "objective.cap"),
+        (["objective.compile=sometimes"], "objective.compile"),
         (["objective.start=1.5"], "objective.start"),
         (["objective.w_max=0.5", "objective.cap=exact"], "w_max"),
         (["optim.decay=step"], "optim.decay"),

@@ -395,6 +395,44 @@ class TestCompile:
         with pytest.raises(RuntimeError, match="non-finite"):
             compiled(bad)
 
+    def test_compile_weights_setting(self, segments):
+        with pytest.raises(ValueError, match="compile_weights"):
+            make_loss(compile_weights="sometimes")
+        # auto: eager on the CPU (compiled only for CUDA tensors with triton); never: eager everywhere
+        cpu = torch.device("cpu")
+        assert make_loss()._weight_function(cpu) is WEIGHTINGS["tar"].weights
+        assert make_loss(compile_weights="never")._weight_function(cpu) is WEIGHTINGS["tar"].weights
+        # uniform and the stochastic controls always run eagerly
+        for name in ("uniform", "shuffle", "random", "perturb_high"):
+            assert make_loss(name, compile_weights="always")._weight_function(cpu) is WEIGHTINGS[name].weights
+
+    @pytest.mark.slow
+    @pytest.mark.parametrize("name", ["tar", "invert"])
+    def test_compiled_weighting_matches_eager_through_the_schedule(self, segments, name):
+        from torch._dynamo.utils import counters
+
+        schedule = MixSchedule(start=1, ramp=3)  # alpha 0, 0, 1/3, 2/3, 1 over five steps
+        eager = make_loss(name, schedule=schedule, return_weights=True, compile_weights="never")
+        compiled = make_loss(name, schedule=schedule, return_weights=True, compile_weights="always")
+        assert compiled._weight_function(torch.device("cpu")) is not WEIGHTINGS[name].weights
+        graphs = counters["stats"]["unique_graphs"]
+        for _ in range(5):
+            a, b = eager(segments), compiled(segments)
+            torch.testing.assert_close(b["weights"], a["weights"], rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(b["loss_tar"], a["loss_tar"], rtol=1e-5, atol=1e-6)
+            ga = torch.autograd.grad(a["loss_tar"], list(eager.parameters()))
+            gb = torch.autograd.grad(b["loss_tar"], list(compiled.parameters()))
+            for x, y in zip(ga, gb):
+                torch.testing.assert_close(y, x, rtol=1e-4, atol=1e-6)
+        assert float(a["tar_mix"]) == 1.0  # the last step weighted at full strength: not the uniform mean
+        assert not torch.allclose(a["weights"], segments["collector", "mask"].to(a["weights"].dtype))
+        assert counters["stats"]["unique_graphs"] - graphs <= 1, "the weighting is recompiled as the schedule moves"
+        bad = segments.clone()
+        i, t = bad["collector", "mask"].nonzero()[0].tolist()
+        bad["observation"][i, t] = float("nan")
+        with pytest.raises(RuntimeError, match="non-finite"):
+            compiled(bad)
+
     @pytest.mark.slow
     def test_inductor_training_step(self, segments):
         eager, compiled_loss = make_loss(), make_loss()
