@@ -54,7 +54,7 @@ import torch
 from tensordict import TensorDict
 
 from tar_rl.io import write_csv_atomic
-from tar_rl.objectives import TARLoss
+from tar_rl.objectives import TARLoss, compiles_weights
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
@@ -214,17 +214,11 @@ def make_inference(head: str, n_envs: int, calls: int, device: torch.device, see
 # ---------------------------------------------------------------------------------------------
 
 
-def variants(args, device) -> tuple[str, ...]:
-    """``uniform``, ``tar`` and, where ``tar``'s weighting is compiled, ``tar_eager``."""
-    compiled = TARLoss(build(BASELINE_HEAD, 0).loss, "tar", compile_weights=args.compile_weights)
-    compiled = compiled._weight_function(device) is not compiled.weighting.weights
-    return OBJECTIVES + (("tar_eager",) if compiled else ())
-
-
 def bench_train(heads, args, device) -> list[dict]:
     batch = make_batch(args.batch, args.slice_len, args.seed).to(device)
     steps: dict[tuple[str, str], Callable[[], None]] = {}
-    names = variants(args, device)
+    # uniform, tar and, where tar's weighting is compiled, tar_eager
+    names = OBJECTIVES + (("tar_eager",) if compiles_weights(args.compile_weights, device) else ())
     for head in heads:
         for variant in names:
             objective, mode = ("tar", "never") if variant == "tar_eager" else (variant, args.compile_weights)

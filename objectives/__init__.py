@@ -4,7 +4,7 @@ Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.t
 """
 
 from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
-from .tar_loss import COMPILE_MODES, TARLoss, segment_mean
+from .tar_loss import COMPILE_MODES, TARLoss, compiles_weights, segment_mean
 from .weighting import (
     CAP_MODES,
     DEFAULT_EPS,
@@ -37,6 +37,7 @@ __all__ = [
     "TARParams",
     "Weighting",
     "check_step_losses",
+    "compiles_weights",
     "get_weighting",
     "invert_weights",
     "mix_at",

@@ -29,7 +29,7 @@ from .weighting import (
     perturb_mask,
 )
 
-__all__ = ["COMPILE_MODES", "TARLoss", "segment_mean"]
+__all__ = ["COMPILE_MODES", "TARLoss", "compiles_weights", "segment_mean"]
 
 #: ``compile_weights`` of :class:`TARLoss`: ``auto`` (on CUDA, when triton is installed), ``always``, ``never``.
 COMPILE_MODES = ("auto", "always", "never")
@@ -39,11 +39,15 @@ COMPILE_MODES = ("auto", "always", "never")
 _COMPILED: dict = {}
 
 
-def _can_compile_for(device: torch.device) -> bool:
-    """What ``compile_weights="auto"`` decides: compile for CUDA tensors when inductor can emit triton kernels."""
+def compiles_weights(compile_weights: str, device: torch.device) -> bool:
+    """Whether ``TARLoss(compile_weights=...)`` compiles its weighting for tensors on ``device``:
+    ``always``; ``auto`` for CUDA tensors when inductor can emit triton kernels; never for ``never``
+    (and never for the weightings that always run eagerly, see :class:`TARLoss`)."""
+    if compile_weights != "auto":
+        return compile_weights == "always"
     if device.type != "cuda":
         return False
-    from torch.utils._triton import has_triton
+    from torch.utils._triton import has_triton  # cached
 
     return has_triton()
 
@@ -303,8 +307,7 @@ class TARLoss(LossModule):
         """The weighting's function, compiled where ``compile_weights`` says so."""
         spec = self.weighting
         eager = spec.stochastic or spec.perturb is not None or spec.name == "uniform"
-        mode = getattr(self, "compile_weights", "never")  # a loss pickled before the setting existed
-        if eager or mode == "never" or (mode == "auto" and not _can_compile_for(device)):
+        if eager or not compiles_weights(self.compile_weights, device):
             return spec.weights
         if spec.name not in _COMPILED:
             _COMPILED[spec.name] = torch.compile(spec.weights, dynamic=False)

@@ -467,7 +467,7 @@ def make_objective(config: dict, policy: Policy) -> TARLoss:
         perturb_scale=obj["perturb_scale"],
         seed=config["seed"],
         loss_key=policy.loss_key,
-        compile_weights=obj.get("compile", "auto"),
+        compile_weights=obj["compile"],
     )
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)

@@ -15,8 +15,8 @@ import pytest
 BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_objective.py"
 
 
-def _load_bench():
-    spec = importlib.util.spec_from_file_location("bench_objective", BENCH)
+def _load_bench(name: str = "bench_objective"):
+    spec = importlib.util.spec_from_file_location(name, BENCH.parent / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -57,9 +57,7 @@ def test_bench_objective_quick_writes_csv(tmp_path):
 def test_bench_heads_quick_covers_every_registered_head(tmp_path):
     from tar_rl.policies import POLICIES
 
-    spec = importlib.util.spec_from_file_location("bench_heads", BENCH.parent / "bench_heads.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _load_bench("bench_heads")
     out = tmp_path / "h.csv"
     bench.main(["--quick", "--out", str(out), "--batch", "4", "--slice-len", "4", "--envs", "2", "--calls", "3"])
 
@@ -86,9 +84,7 @@ def test_bench_heads_quick_covers_every_registered_head(tmp_path):
 
 @pytest.mark.slow
 def test_bench_heads_times_the_eager_weighting_beside_a_compiled_one(tmp_path):
-    spec = importlib.util.spec_from_file_location("bench_heads", BENCH.parent / "bench_heads.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _load_bench("bench_heads")
     out = tmp_path / "h.csv"
     args = ["--quick", "--heads", "mlp", "--batch", "4", "--slice-len", "4", "--envs", "2", "--calls", "3"]
     bench.main([*args, "--out", str(out), "--compile-weights", "always"])

@@ -214,9 +214,7 @@ class ACTModel(nn.Module):
         n = obs.shape[0]
         tokens = [self.latent_in(z), self.obs_in(obs), self.task(task_id)]
         if self.image is not None:
-            if pixels is None:
-                raise ValueError("this policy reads images (policy.observation=image): the input has no 'pixels'")
-            tokens.append(self.image(pixels.reshape(n, *pixels.shape[-3:])))
+            tokens.append(self.image(pixels).reshape(n, -1))
         tokens = torch.stack(tokens, dim=1) + self.token_pos
         memory = self.encoder(tokens)
         out = self.decoder(self.queries.expand(n, -1, -1), memory)

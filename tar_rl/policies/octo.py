@@ -270,9 +270,7 @@ class OctoBackbone(nn.Module):
         readouts = self.readout.expand(n, -1, -1)
         tokens = [task_token.to(obs_tokens.dtype), obs_tokens]
         if self.image is not None:
-            if pixels is None:
-                raise ValueError("this policy reads images (policy.observation=image): the input has no 'pixels'")
-            tokens.append(self.image(pixels.reshape(n, *pixels.shape[-3:]))[:, None].to(obs_tokens.dtype))
+            tokens.append(self.image(pixels).reshape(n, 1, -1).to(obs_tokens.dtype))
         x = torch.cat([*tokens, readouts.to(obs_tokens.dtype)], dim=1)
         r = self.readout.shape[0]
         keys = torch.cat([valid.new_ones(n, 1), valid, valid.new_ones(n, x.shape[1] - 1 - self.history)], dim=1)

@@ -55,7 +55,9 @@ class ConvEncoder(nn.Module):
             width = self.conv(torch.zeros(1, 3, image_size, image_size)).shape[-1]
         self.out = nn.Sequential(nn.Linear(width, out_dim), nn.LayerNorm(out_dim))
 
-    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+    def forward(self, pixels: torch.Tensor | None) -> torch.Tensor:
+        if pixels is None:
+            raise ValueError("this policy reads images (policy.observation=image): the input has no 'pixels'")
         lead = pixels.shape[:-3]
         if pixels.shape[-3:] != (3, self.image_size, self.image_size):
             raise ValueError(
