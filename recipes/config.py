@@ -35,6 +35,7 @@ __all__ = [
     "DEFAULT_TASKS",
     "PRESETS",
     "DataConfig",
+    "DiagnosticsConfig",
     "EvalConfig",
     "LoggingConfig",
     "ObjectiveConfig",
@@ -217,6 +218,35 @@ class LoggingConfig:
     record_episodes: int = 1
 
 
+@dataclass
+class DiagnosticsConfig:
+    """Fit diagnostics written into ``summary.json`` at the end of a run (``tar_rl.diagnostics``).
+
+    They tell which regime a run is in: passes over the demonstration steps, the final uniform
+    training loss, the per-step loss on held-out demonstrations (overall and per phase) and how
+    TAR's weights on the training demonstrations line up with that held-out loss over episode
+    time. They read the trained policy only: no setting here changes what a run trains or its
+    evaluation, so the group is not part of a run's identity.
+
+    Attributes:
+        heldout_demos: held-out demonstrations per training task, collected like the training
+            ones from ``heldout_seed`` (MetaWorld only; 0: none). They are never trained on.
+        heldout_seed: base seed of the held-out variations; must differ from the training
+            demonstrations' and the evaluation's seeds (checked before work).
+        train_episodes: training demonstrations per task along which TAR's weights are computed.
+        bins: bins of normalised episode time for the weight / held-out loss alignment.
+    """
+
+    heldout_demos: int = 3
+    heldout_seed: int = 5000
+    train_episodes: int = 10
+    bins: int = 10
+
+
+def _default_init() -> dict[str, str | None]:
+    return {"from": None}
+
+
 def _defaults() -> list[Any]:
     return [
         "_self_",
@@ -226,6 +256,7 @@ def _defaults() -> list[Any]:
         {"eval": "default"},
         {"optim": "default"},
         {"logging": "default"},
+        {"diagnostics": "default"},
         {"override hydra/job_logging": "none"},
         {"override hydra/hydra_logging": "none"},
     ]
@@ -253,6 +284,12 @@ class TrainConfig:
         data, eval, optim, logging: groups of presets of :class:`DataConfig`, :class:`EvalConfig`,
             :class:`OptimConfig`, :class:`LoggingConfig` (see :data:`PRESETS`); ``default`` is the
             embedded main job.
+        diagnostics: the ``diagnostics`` group (:class:`DiagnosticsConfig`).
+        init: ``init.from=<run dir or checkpoint>`` starts from a trained policy's weights
+            (post-training, ``tar_rl.recipes.post_training``): same head and sizes; task-embedding
+            rows of tasks the source never trained keep this run's fresh initialisation; the
+            optimiser, schedule and sampler start fresh. The source run's name (its identity)
+            is part of this run's identity; the path is not.
         seed: seeds the network initialisation and the segment sampler.
         threads: torch intra-op threads on CPU (1 by default: a small policy trains fastest on
             one thread, and the evaluator's worker processes get the other cores); 0: torch's default.
@@ -270,6 +307,9 @@ class TrainConfig:
     eval: Any = MISSING
     optim: Any = MISSING
     logging: Any = MISSING
+    diagnostics: Any = MISSING
+    # A dict, not a dataclass: the key is the Python keyword ``from`` (``init.from=...``).
+    init: dict[str, str | None] = field(default_factory=_default_init)
     seed: int = 0
     threads: int = 1
     device: str = "auto"
@@ -298,6 +338,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "paper": OptimConfig(steps=100_000, warmup=1000),
     },
     "logging": {"default": LoggingConfig(), "quiet": LoggingConfig(progress=False)},
+    "diagnostics": {"default": DiagnosticsConfig()},
 }
 
 

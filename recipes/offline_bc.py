@@ -61,6 +61,7 @@ from tar_rl.runs import (
     json_metric,
     last_metric,
     load_checkpoint,
+    machine,
     print_table,
     rollout_records,
     run_name,
@@ -68,6 +69,7 @@ from tar_rl.runs import (
     summary_rows,
 )
 
+from . import diagnose, post_training
 from .config import CONFIG_NAME, register_configs
 
 __all__ = [
@@ -384,6 +386,15 @@ def validate(config: dict) -> dict:
     if len(opt["betas"]) != 2 or not all(0 <= b < 1 for b in opt["betas"]):
         raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {opt['betas']}")
     _device(config["device"])
+    diag = config["diagnostics"]
+    for name in ("heldout_demos", "heldout_seed"):
+        _check_int(f"diagnostics.{name}", diag[name], 0)
+    _check_int("diagnostics.train_episodes", diag["train_episodes"], 1)
+    _check_int("diagnostics.bins", diag["bins"], 2)
+    try:
+        diagnose.check_heldout_seeds(config)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     # Demonstration and evaluation variations must never overlap (checked on the largest number
     # of attempts collection may make, before collecting; on a given dataset, on the seeds it used).
     if ev["rollouts"]:
@@ -403,10 +414,30 @@ def validate(config: dict) -> dict:
         )
         if given is not None:
             placeholder = DataInfo.from_metadata(given.metadata)
-        make_objective(config, make_policy(config, placeholder))
+        policy = make_policy(config, placeholder)
+        make_objective(config, policy)
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
+    _check_init(config, policy, placeholder)
     return {"train": train_tasks, "eval": eval_tasks, "suite": suite_name}
+
+
+def _check_init(config: dict, policy: Policy, info: DataInfo) -> None:
+    """Check ``init.from`` (if set) against the policy built from ``config`` and record the source's name as
+    ``init.source`` (part of the run's identity)."""
+    init = config.setdefault("init", {"from": None})
+    unknown = sorted(set(init) - {"from", "source"})
+    if unknown:
+        raise ConfigError(f"init has no setting(s) {unknown}; valid: init.from")
+    if not init.get("from"):
+        init.pop("source", None)
+        return
+    try:
+        source = post_training.load_source(init["from"])
+        post_training.check_fits(source, config["policy"]["name"], policy, info)
+    except post_training.InitError as err:
+        raise ConfigError(str(err)) from None
+    init["source"] = source.name
 
 
 def _device(name: str, local_rank: int = 0) -> torch.device:
@@ -615,6 +646,9 @@ def evaluate_checkpoint(
     path = Path(path)
     state = load_checkpoint(path)
     config = _with_defaults(state["config"])
+    # Evaluating a saved policy needs neither its post-training source nor held-out data.
+    config["init"] = {"from": None}
+    config["diagnostics"]["heldout_demos"] = 0
     ev = config["eval"]
     for key, value in (("rollouts", rollouts), ("seed", seed), ("horizon", horizon), ("workers", workers)):
         if value is not None:
@@ -678,12 +712,19 @@ class Trainer:
         if not dist.main:
             dist.barrier()  # rank 0 collects (or finds) the dataset first; the others then load it
         self.dataset = make_dataset(config, tasks["train"], progress=self.progress)
+        self.heldout = diagnose.heldout_dataset(config, tasks["train"], progress=self.progress)
         if dist.main:
             dist.barrier()
         if config["eval"]["rollouts"]:
             SUITES[tasks["suite"]].check_dataset(self.dataset, config["eval"]["seed"], config["eval"]["rollouts"])
         self.info = DataInfo.from_metadata(self.dataset.metadata)
         self.policy = make_policy(config, self.info)
+        self.source = None
+        if config["init"].get("from"):
+            self.source = post_training.load_source(config["init"]["from"])
+            post_training.check_fits(self.source, config["policy"]["name"], self.policy, self.info)
+            if resume is None:  # a resumed run reads its own weights from its checkpoint
+                post_training.apply_init(self.policy, self.source)
         self.objective = make_objective(config, self.policy).to(self.device)
         self.model = self.objective
         if dist.active:
@@ -719,6 +760,7 @@ class Trainer:
                 self.dataset, tasks["train"], self.log_cfg["record_episodes"], self.policy.keys, self.device
             )
         self.logs = RunLogs(run_dir)
+        self.commit = git_commit()
         self.step, self.skipped, self.train_seconds = 0, 0, 0.0
         if resume is not None:
             self._restore(resume)
@@ -762,6 +804,8 @@ class Trainer:
                 "skipped": self.skipped,
                 "train_seconds": self.train_seconds,
                 "world_size": self.dist.world,
+                "task_ids": sorted(int(i) for i in self.dataset.metadata["task_ids"].values()),
+                "git_commit": self.commit,
             },
             self.run_dir,
         )
@@ -879,8 +923,26 @@ class Trainer:
         start = time.perf_counter()
         table = self.evaluate(self.steps)
         self.eval_seconds = time.perf_counter() - start
+        self.fit = self.diagnose() if self.dist.main else None
         self.checkpoint(finished=True)
         return table
+
+    def diagnose(self) -> dict:
+        """The run's fit diagnostics (:func:`diagnose.fit_summary`) at the current weights."""
+        slice_len = self.config["data"]["slice_len"]
+        keys, device = self.policy.keys, self.device
+        fit = diagnose.fit_summary(
+            self.config,
+            self.objective,
+            self.dataset,
+            self.heldout,
+            self.tasks["train"],
+            self.logs.metrics,
+            episodes_of=lambda data, tasks, n: _demo_episodes(data, tasks, n, keys, device),
+            record=lambda objective, episodes: record_weights(objective, episodes, slice_len, self.steps),
+        )
+        self.objective.train()
+        return fit
 
     def _log_train(self, step: int, sums: dict[str, float], n_ok: int) -> None:
         # Extra scalar losses of the head (e.g. ACT's KL as aux_loss_kl): the same on every rank.
@@ -911,12 +973,15 @@ class Trainer:
             if table is not None
             else [],  # eval.rollouts=0: not evaluated
             "final_train_loss": last_metric(self.logs.metrics, "loss"),
+            "fit": self.fit,
+            "init": self.source.provenance() if self.source is not None else None,
             "nonfinite_steps_skipped": self.skipped,
             "train_seconds": self.train_seconds,
             "final_eval_seconds": self.eval_seconds,
             "world_size": self.dist.world,
             "config": config,
-            "git_commit": git_commit(),
+            "git_commit": self.commit,
+            "machine": machine(),
             "versions": {"torch": torch.__version__, **self.dataset.metadata["versions"]},
         }
         write_json_atomic(summary, self.run_dir / "summary.json")

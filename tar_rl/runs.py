@@ -35,6 +35,7 @@ __all__ = [
     "json_metric",
     "last_metric",
     "load_checkpoint",
+    "machine",
     "print_table",
     "rollout_records",
     "run_name",
@@ -53,6 +54,8 @@ NOT_IDENTITY = (
     ("data", "root"),
     ("eval", "workers"),
     ("logging", "progress"),
+    ("diagnostics",),
+    ("init", "from"),
     ("threads",),
     ("runs_root",),
     ("run_dir",),
@@ -72,8 +75,21 @@ ADDED_LATER = (
 
 def identity(config: dict) -> dict:
     """The settings that determine what a run computes: ``config`` without :data:`NOT_IDENTITY`
-    (and without the :data:`ADDED_LATER` settings left at their neutral value)."""
+    (and without the :data:`ADDED_LATER` settings left at their neutral value).
+
+    A post-training run (``init.from``) is identified by its source run's name, ``init.source``
+    (which holds the source's own identity hash), not by the source's path.
+
+    Raises:
+        ValueError: ``init.from`` is set but ``init.source`` has not been filled in (the recipe's
+            ``validate`` does that from the source checkpoint).
+    """
+    init = config.get("init") or {}
+    if init.get("from") and not init.get("source"):
+        raise ValueError("init.from is set but init.source is not: validate the config first")
     ident = copy.deepcopy(config)
+    if not init.get("from"):
+        ident.pop("init", None)
     policy = config.get("policy", {}).get("name")
     drops = [(path, None, None) for path in NOT_IDENTITY] + [(*entry, None)[:3] for entry in ADDED_LATER]
     for path, neutral, heads in drops:
@@ -209,3 +225,17 @@ def git_commit() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+def machine() -> dict:
+    """The machine a run trains on: host name, cores, platform and accelerator (for ``summary.json``)."""
+    import os
+    import platform
+    import socket
+
+    return {
+        "hostname": socket.gethostname(),
+        "cores": os.cpu_count(),
+        "platform": platform.platform(),
+        "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
+    }

@@ -375,7 +375,7 @@ def test_train_on_imported_dataset_without_evaluation(tmp_path):
     info = DataInfo.from_dict(state["data_info"])
     assert (info.obs_dim, info.action_dim, info.n_tasks) == (7, 7, 2)
     assert info.instructions == ("", "open the top drawer")
-    assert state["policy"]["module.task_embedding.weight"].shape == (2, 32)
+    assert state["policy"]["module.task_embedding.embedding.weight"].shape == (2, 32)
     # Fig. 5's weights were recorded along demonstrations of both imported tasks
     weights = (run / "weights.csv").read_text()
     assert ",Lift," in weights and ",open_the_drawer," in weights

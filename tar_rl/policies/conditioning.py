@@ -76,6 +76,22 @@ class TaskEncoder(nn.Module):
             self.words = nn.Embedding(vocab, dim, padding_idx=0)
             self.project = nn.Linear(dim, dim)
 
+    def task_rows(self, task_ids: Sequence[int]) -> dict[str, torch.Tensor]:
+        """The rows of this encoder's tables that training on ``task_ids`` updates: ``{parameter name: [rows] bool}``.
+
+        ``embedding``: the rows of those task ids. ``instruction``: the rows of the words of their
+        instructions (the projection is shared by every task and not listed). A row outside these
+        gets no gradient from those tasks' data.
+        """
+        ids = torch.as_tensor(list(task_ids), dtype=torch.long)
+        if self.kind == "embedding":
+            rows = torch.zeros(self.embedding.num_embeddings, dtype=torch.bool)
+            rows[ids] = True
+            return {"embedding.weight": rows}
+        rows = torch.zeros(self.words.num_embeddings, dtype=torch.bool)
+        rows[self.word_ids[ids][self.word_mask[ids]]] = True
+        return {"words.weight": rows}
+
     def forward(self, task_id: torch.Tensor) -> torch.Tensor:
         if self.kind == "embedding":
             return self.embedding(task_id)

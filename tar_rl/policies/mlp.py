@@ -93,10 +93,8 @@ class MLPPolicy(nn.Module):
         task_width = {"embedding": cfg.task_dim, "instruction": cfg.task_dim, "onehot": info.n_tasks, "none": 0}
         task_width = task_width[self.conditioning]
         self.task_embedding = None
-        if self.conditioning == "embedding":  # a plain nn.Embedding keeps earlier checkpoints' state-dict keys
-            self.task_embedding = nn.Embedding(info.n_tasks, cfg.task_dim)
-        elif self.conditioning == "instruction":
-            self.task_embedding = TaskEncoder("instruction", info.n_tasks, cfg.task_dim, info.instructions)
+        if self.conditioning in ("embedding", "instruction"):
+            self.task_embedding = TaskEncoder(self.conditioning, info.n_tasks, cfg.task_dim, info.instructions)
         layers: list[nn.Module] = []
         state_width = PROPRIO_DIMS + cfg.image_dim if self.image is not None else info.obs_dim
         width = state_width + task_width

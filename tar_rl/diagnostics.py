@@ -1,0 +1,136 @@
+"""Fit diagnostics: which regime a training run is in (pure functions over logged numbers and tables).
+
+A run memorising a few demonstrations (hundreds of passes over the data, per-step losses near
+zero) and a run making a few passes over rich data differ in what TAR's weights mean. These
+numbers tell them apart:
+
+* :func:`passes`: per-step losses computed / demonstration steps stored;
+* :func:`tail_mean`: the final uniform training loss, averaged over the last 5% of the steps;
+* the held-out per-step loss, overall and per phase (:func:`phase_means`), on demonstrations never
+  trained on;
+* :func:`alignment`: over bins of normalised episode time, the rank correlation between TAR's mean
+  weight on the training demonstrations and the mean held-out per-step loss. Positive: TAR
+  emphasises the moments where the policy generalises worst; 0: unrelated; negative: the opposite.
+
+Tables of per-step values (:data:`STEP_COLUMNS`) hold one row per step of a whole demonstration:
+``episode`` (an id), ``t`` (its step index), ``length`` (the episode's length ``T``), ``value`` and
+``gripper`` (the gripper action, for the phase labels of :func:`tar_rl.report.phase_labels`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from tar_rl.report import PHASES, phase_labels
+
+__all__ = [
+    "STEP_COLUMNS",
+    "alignment",
+    "binned_means",
+    "passes",
+    "phase_means",
+    "rank_correlation",
+    "tail_mean",
+    "time_bins",
+]
+
+STEP_COLUMNS = ("episode", "t", "length", "value", "gripper")
+
+
+def passes(steps: int, batch_segments: int, slice_len: int, demo_steps: int) -> float:
+    """Per-step losses a run computes (``steps x batch_segments x slice_len``) per stored demonstration step."""
+    if demo_steps < 1:
+        raise ValueError(f"the dataset must hold at least one step, got {demo_steps}")
+    return steps * batch_segments * slice_len / demo_steps
+
+
+def tail_mean(rows: Sequence[tuple], name: str, steps: int, fraction: float = 0.05) -> float | None:
+    """Mean of the logged training metric ``name`` over the rows of the last ``fraction`` of ``steps``.
+
+    ``rows`` are ``metrics.csv`` rows ``(step, phase, name, value)``; a row logged at step ``s``
+    counts when ``s > steps - ceil(fraction * steps)`` (each row is the mean of its logging window).
+    ``None`` when no such row exists.
+    """
+    if not 0 < fraction <= 1:
+        raise ValueError(f"fraction must lie in (0, 1], got {fraction}")
+    first = steps - math.ceil(fraction * steps)
+    values = [float(r[3]) for r in rows if r[1] == "train" and r[2] == name and int(r[0]) > first]
+    return float(np.mean(values)) if values else None
+
+
+def time_bins(t: np.ndarray, length: np.ndarray, bins: int) -> np.ndarray:
+    """The bin ``floor(bins * t / length)`` of normalised episode time of each step (``0 .. bins - 1``)."""
+    t, length = np.asarray(t, dtype=np.int64), np.asarray(length, dtype=np.int64)
+    if bins < 1:
+        raise ValueError(f"bins must be >= 1, got {bins}")
+    if np.any(length < 1) or np.any(t < 0) or np.any(t >= length):
+        raise ValueError("every step needs 0 <= t < length")
+    return (bins * t) // length
+
+
+def binned_means(steps: pd.DataFrame, bins: int) -> np.ndarray:
+    """``[bins]`` mean ``value`` per bin of normalised episode time, pooled over episodes (``nan`` where empty)."""
+    which = time_bins(steps["t"].to_numpy(), steps["length"].to_numpy(), bins)
+    values = steps["value"].to_numpy(dtype=np.float64)
+    sums = np.bincount(which, weights=values, minlength=bins)
+    counts = np.bincount(which, minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+
+
+def rank_correlation(x: Sequence[float], y: Sequence[float]) -> float:
+    """Spearman's rank correlation of paired values (average ranks for ties; pairs with a ``nan`` left out).
+
+    ``nan`` with fewer than 3 pairs or when either side is constant.
+    """
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if x.shape != y.shape:
+        raise ValueError(f"x and y must pair up, got shapes {x.shape} and {y.shape}")
+    keep = np.isfinite(x) & np.isfinite(y)
+    if keep.sum() < 3:
+        return math.nan
+    rx = pd.Series(x[keep]).rank(method="average").to_numpy()
+    ry = pd.Series(y[keep]).rank(method="average").to_numpy()
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    denom = math.sqrt(float((rx**2).sum() * (ry**2).sum()))
+    return float((rx * ry).sum() / denom) if denom > 0 else math.nan
+
+
+def phase_means(steps: pd.DataFrame) -> dict[str, float | None]:
+    """Mean ``value`` per phase (:data:`tar_rl.report.PHASES`, labelled per episode from its gripper action);
+    ``None`` for a phase no step falls in."""
+    labels = np.empty(len(steps), dtype=object)
+    for _, idx in steps.groupby("episode", sort=False).indices.items():
+        order = idx[np.argsort(steps["t"].to_numpy()[idx])]
+        labels[order] = phase_labels(steps["gripper"].to_numpy()[order])
+    values = steps["value"].to_numpy(dtype=np.float64)
+    return {p: (float(values[labels == p].mean()) if np.any(labels == p) else None) for p in PHASES}
+
+
+def alignment(train_weights: pd.DataFrame, heldout_losses: pd.DataFrame, bins: int = 10) -> dict:
+    """How TAR's weights on training demonstrations line up with the held-out loss over episode time.
+
+    Args:
+        train_weights: per-step TAR weights along training demonstrations (:data:`STEP_COLUMNS`).
+        heldout_losses: per-step losses along held-out demonstrations (:data:`STEP_COLUMNS`).
+        bins: bins of normalised episode time.
+
+    Returns:
+        ``spearman`` (:func:`rank_correlation` of the two per-bin means), ``weight_by_bin`` and
+        ``heldout_loss_by_bin`` (lists of ``bins`` values, ``None`` for an empty bin).
+    """
+    w, loss = binned_means(train_weights, bins), binned_means(heldout_losses, bins)
+
+    def plain(a: np.ndarray) -> list:
+        return [float(v) if np.isfinite(v) else None for v in a]
+
+    r = rank_correlation(w, loss)
+    return {
+        "spearman": r if math.isfinite(r) else None,
+        "weight_by_bin": plain(w),
+        "heldout_loss_by_bin": plain(loss),
+    }
