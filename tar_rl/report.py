@@ -61,8 +61,10 @@ __all__ = [
     "critical_windows",
     "expand_run_dirs",
     "first_gripper_close",
+    "holm",
     "load_run",
     "main",
+    "min_detectable_effect",
     "paired_t",
     "paired_table",
     "phase_labels",
@@ -120,6 +122,7 @@ class Run:
         eval_settings: what two runs must share to be compared: ``tasks`` (sorted task names of the
             final evaluation), ``eval.rollouts`` (rollouts per task), ``eval.seed`` and ``eval.horizon``.
         notes: why the run is unfinished, or other remarks printed with the report.
+        summary: the run's ``summary.json`` (empty before the run finished).
     """
 
     path: Path
@@ -137,6 +140,7 @@ class Run:
     git_commit: str | None = None
     eval_settings: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    summary: dict = field(default_factory=dict)
 
 
 def _is_run_dir(path: Path) -> bool:
@@ -165,6 +169,13 @@ def _read_summary(path: Path) -> dict:
     if not isinstance(data.get("finished"), bool):
         raise ValueError(f"{path}: the run summary has no boolean 'finished' entry")
     return data
+
+
+def _run_file(run_dir: Path, name: str) -> Path:
+    """``run_dir / name``, or its gzip-compressed copy ``name.gz`` when only that exists (committed results)."""
+    path = run_dir / name
+    packed = run_dir / f"{name}.gz"
+    return packed if not path.is_file() and packed.is_file() else path
 
 
 def _read_csv(path: Path, columns: Sequence[str]) -> pd.DataFrame:
@@ -260,7 +271,7 @@ def load_run(path: str | os.PathLike) -> Run:
     elif not finished:
         notes.append("unfinished: summary.json says finished: false")
 
-    metrics_path = path / "metrics.csv"
+    metrics_path = _run_file(path, "metrics.csv")
     if metrics_path.is_file():
         metrics = _read_csv(metrics_path, METRICS_COLUMNS)
     elif finished:
@@ -268,7 +279,7 @@ def load_run(path: str | os.PathLike) -> Run:
     else:
         metrics = pd.DataFrame({c: pd.Series(dtype=object) for c in METRICS_COLUMNS})
 
-    rollouts_path = path / "eval_rollouts.csv"
+    rollouts_path = _run_file(path, "eval_rollouts.csv")
     final = final_step = None
     settings: dict = {}
     if rollouts_path.is_file():
@@ -295,7 +306,7 @@ def load_run(path: str | os.PathLike) -> Run:
     if finished and summary.get("final"):
         _check_summary_agrees(summary["final"], final, notes)
 
-    weights_path = path / "weights.csv"
+    weights_path = _run_file(path, "weights.csv")
     weights = _read_csv(weights_path, WEIGHTS_COLUMNS) if weights_path.is_file() else None
     if weights is not None and len(weights) == 0:
         weights = None
@@ -316,6 +327,7 @@ def load_run(path: str | os.PathLike) -> Run:
         git_commit=info.get("git_commit"),
         eval_settings=settings,
         notes=notes,
+        summary=summary or {},
     )
 
 
@@ -1076,6 +1088,39 @@ def paired_t(deltas: Sequence[float], confidence: float = 0.95) -> dict[str, flo
     t = mean / se
     out.update(ci_low=mean - q * se, ci_high=mean + q * se, t=t, p_value=float(2 * stats.t.sf(abs(t), n - 1)))
     return out
+
+
+def holm(p_values: Sequence[float]) -> list[float]:
+    """Holm-Bonferroni adjusted p-values of a family of tests, in the order given.
+
+    With the ``m`` p-values sorted ascending, ``p_(i)`` becomes ``max_{j <= i} min(1, (m - j + 1) p_(j))``
+    (1-based ``j``). ``nan`` entries are left out of the family and stay ``nan``.
+    """
+    values = [float(p) for p in p_values]
+    present = sorted((p, i) for i, p in enumerate(values) if not math.isnan(p))
+    m = len(present)
+    out = [math.nan] * len(values)
+    running = 0.0
+    for rank, (p, i) in enumerate(present):
+        running = max(running, min(1.0, (m - rank) * p))
+        out[i] = running
+    return out
+
+
+def min_detectable_effect(std: float, n: int, alpha: float = 0.05, power: float = 0.8) -> float:
+    """The smallest true mean paired difference a two-sided paired t-test detects with ``power``.
+
+    ``(t_{1 - alpha/2, n-1} + t_{power, n-1}) * std / sqrt(n)`` (the usual approximation with the
+    observed spread ``std`` of the differences and ``n`` pairs); ``nan`` with fewer than 2 pairs.
+    """
+    from scipy import stats
+
+    if not 0 < alpha < 1 or not 0 < power < 1:
+        raise ValueError(f"alpha and power must lie in (0, 1), got {alpha}, {power}")
+    if n < 2 or not math.isfinite(std):
+        return math.nan
+    q = float(stats.t.ppf(1 - alpha / 2, n - 1)) + float(stats.t.ppf(power, n - 1))
+    return q * std / math.sqrt(n)
 
 
 def paired_table(

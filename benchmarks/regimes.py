@@ -1,0 +1,587 @@
+"""Where does TAR help? The pre-registered regime study (``results/regimes/PLAN.md``) as commands.
+
+Usage::
+
+    python benchmarks/regimes.py COMMAND [--scale cpu|ci] [--out DIR] [--jobs N] [--seeds 0,1,..]
+                                         [--data-root DIR] [--dry-run]
+
+Commands (every run lands in ``<out>/runs/``, named by its settings: running a command again skips
+finished runs and resumes interrupted ones):
+
+* ``r1``: post-training from a pretrained policy. Trains the source (uniform, the 42 MT50 tasks
+  outside the default eight, 25 demonstrations each) if it is not there, then the pairs (uniform,
+  tar) on the default eight tasks from it, for each demonstration budget (3: primary; 10: secondary).
+* ``r2-screen``: the screening run (uniform, MT50, evaluated on the tuning seed) and the list of the
+  ten tasks with the lowest success (``<out>/screening.json``), refused once comparison runs started.
+* ``r2``: the pairs on the screened tasks (``<out>/r2_started.json`` records the list they use).
+* ``r3``: the pairs on MT50 with 50 demonstrations per task, about 20 passes over the data.
+* ``table``: the decision table, the per-group rows and Fig. 3 per regime from the finished runs
+  (``decision.md``, ``decision.csv``, ``groups.csv``, ``fig3_regimes.png``; provenance in
+  ``provenance.json``). Pairs trained at different commits or on different machines are refused.
+* ``collect --from DIR``: copy the finished runs of a runs folder (e.g. a sweep trained in a separate
+  worktree) into ``<out>/runs``: config, summary and the logs (compressed), never checkpoints except
+  the pretrained source's, which the R1 runs start from.
+
+The ``ci`` scale runs the same commands on two or three tasks for a few steps (what the tests run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import hashlib
+import json
+import math
+import shutil
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_experiments.py beside this script
+from paper_experiments import EIGHT_TASKS, Planner, Scale, Spec, execute, provenance
+
+COMMANDS = ("r1", "r2-screen", "r2", "r3", "table", "collect")
+BASELINE, TREATMENT = "uniform", "tar"
+REGIMES = ("R1", "R1-10", "R2", "R3")
+PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
+# MT50 without the default eight tasks, in MetaWorld's alphabetical order: R1's pretraining tasks.
+SOURCE_TASKS = (
+    "bin-picking,box-close,button-press-topdown-wall,button-press,button-press-wall,coffee-button,coffee-pull,"
+    "coffee-push,dial-turn,disassemble,door-close,door-lock,door-open,door-unlock,drawer-close,drawer-open,"
+    "faucet-close,faucet-open,hammer,hand-insert,handle-press-side,handle-press,handle-pull-side,handle-pull,"
+    "lever-pull,peg-unplug-side,pick-place,plate-slide-back-side,plate-slide-back,plate-slide-side,plate-slide,"
+    "push-back,push,push-wall,reach-wall,shelf-place,soccer,stick-push,sweep-into,sweep,window-close,window-open"
+)
+SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
+# Files of a run kept in the repository; the logs gzip-compressed.
+KEPT = ("config.yaml", "summary.json")
+PACKED = ("eval_rollouts.csv", "metrics.csv", "weights.csv")
+
+
+@dataclass(frozen=True)
+class Study:
+    """The sizes of the study's runs at one scale (overrides are Hydra's ``key=value``).
+
+    Attributes:
+        scale: the shared overrides, seeds and time model (``paper_experiments.Scale``).
+        source: R1's pretraining run.
+        r1: R1's post-training runs (without the budget, seed and objective).
+        r1_budgets: demonstrations per task of R1 (the first is the primary budget).
+        screen: R2's screening run.
+        screen_keep: tasks R2 keeps.
+        r2: R2's runs (without the tasks, seed and objective).
+        r3: R3's runs (without seed and objective).
+    """
+
+    scale: Scale
+    source: tuple[str, ...]
+    r1: tuple[str, ...]
+    r1_budgets: tuple[int, ...]
+    screen: tuple[str, ...]
+    screen_keep: int
+    r2: tuple[str, ...]
+    r3: tuple[str, ...]
+
+
+_COMMON = ("logging=quiet", "logging.record_episodes=3", "threads=1")
+_CPU = Study(
+    scale=Scale(
+        name="cpu",
+        about="the pre-registered regime study (results/regimes/PLAN.md) on 2 CPU cores",
+        common=_COMMON,
+        families=("mlp",),
+        seeds=(0, 1, 2, 3, 4, 5, 6, 7),
+        jobs=2,
+    ),
+    source=(
+        "policy=mlp",
+        "policy.task_conditioning=instruction",
+        "objective=uniform",
+        "seed=0",
+        f"data.tasks=[{SOURCE_TASKS}]",
+        "data.n_demos=25",
+        "data.seed=3000",
+        "optim.steps=40000",
+        "eval.rollouts=10",
+        "eval.seed=2000",
+        "logging.record_episodes=1",
+    ),
+    r1=(
+        "policy=mlp",
+        "policy.task_conditioning=instruction",
+        f"data.tasks={EIGHT_TASKS}",
+        "data.seed=0",
+        "optim.steps=8000",
+        "eval.rollouts=50",
+        "eval.seed=1000",
+        "logging.record_weights_at=[4000,-1]",
+    ),
+    r1_budgets=(3, 10),
+    screen=(
+        "policy=mlp",
+        "objective=uniform",
+        "seed=0",
+        "data.tasks=[mt50]",
+        "data.n_demos=10",
+        "data.seed=0",
+        "optim.steps=8000",
+        "eval.rollouts=20",
+        "eval.seed=2000",
+    ),
+    screen_keep=10,
+    r2=(
+        "policy=mlp",
+        "data.n_demos=10",
+        "data.seed=0",
+        "optim.steps=20000",
+        "eval.rollouts=50",
+        "eval.seed=1000",
+        "logging.record_weights_at=[10000,-1]",
+    ),
+    r3=(
+        "policy=mlp",
+        "data.tasks=[mt50]",
+        "data.n_demos=50",
+        "data.seed=0",
+        "optim.steps=3743",  # 20 x 191,624 demonstration steps / (64 x 16) (results/regimes/PLAN.md)
+        "eval.rollouts=20",
+        "eval.seed=1000",
+        "logging.record_weights_at=[1872,-1]",
+    ),
+)
+_TINY = (
+    "data.n_demos=2",
+    "data.batch_segments=4",
+    "data.slice_len=8",
+    "data.workers=1",
+    "policy.hidden=[16,16]",
+    "optim.steps=4",
+    "optim.warmup=1",
+    "eval.rollouts=1",
+    "eval.horizon=20",
+    "eval.workers=1",
+    "logging.every=1",
+    "logging.checkpoint_every=2",
+    "logging.record_weights_at=[-1]",
+    "diagnostics.heldout_demos=1",
+    "diagnostics.train_episodes=1",
+)
+_CI = Study(
+    scale=Scale(
+        name="ci",
+        about="the regime study's commands on two or three tasks, a few steps (the tests' size; no meaningful numbers)",
+        common=(*_COMMON, *_TINY),
+        families=("mlp",),
+        seeds=(0, 1),
+        jobs=1,
+    ),
+    source=(
+        "policy=mlp",
+        "policy.task_conditioning=instruction",
+        "objective=uniform",
+        "seed=0",
+        "data.tasks=[push,drawer-open]",
+        "data.seed=3000",
+        "eval.seed=2000",
+    ),
+    r1=("policy=mlp", "policy.task_conditioning=instruction", "data.tasks=[reach,basketball]", "eval.seed=1000"),
+    r1_budgets=(1, 2),
+    screen=(
+        "policy=mlp",
+        "objective=uniform",
+        "seed=0",
+        "data.tasks=[reach,basketball,push]",
+        "eval.seed=2000",
+        "eval.rollouts=2",
+    ),
+    screen_keep=2,
+    r2=("policy=mlp", "eval.seed=1000"),
+    r3=("policy=mlp", "data.tasks=[reach,push]", "eval.seed=1000"),
+)
+STUDIES = {"cpu": _CPU, "ci": _CI}
+
+
+# -- Plans ---------------------------------------------------------------------------------------
+
+
+def _pairs(planner: Planner, seeds: Sequence[int], *overrides: str) -> list[Spec]:
+    return [planner.spec(*overrides, f"seed={s}", f"objective={o}") for s in seeds for o in (BASELINE, TREATMENT)]
+
+
+def source_spec(study: Study, planner: Planner) -> Spec:
+    """R1's pretraining run."""
+    return planner.spec(*study.source)
+
+
+def r1_specs(study: Study, planner: Planner, source: Spec, budgets: Sequence[int] | None = None) -> list[Spec]:
+    """R1's pairs from ``source`` (which must have finished: its checkpoint is read)."""
+    out = []
+    for n in study.r1_budgets if budgets is None else budgets:
+        out += _pairs(planner, planner.scale.seeds, *study.r1, f"data.n_demos={n}", f"init.from={source.run_dir}")
+    return out
+
+
+def screening(out: Path) -> list[str] | None:
+    """The committed R2 task list, or None before screening."""
+    path = out / SCREENING_FILE
+    return json.loads(path.read_text())["tasks"] if path.is_file() else None
+
+
+def r2_specs(study: Study, planner: Planner, tasks: Sequence[str]) -> list[Spec]:
+    return _pairs(planner, planner.scale.seeds, *study.r2, f"data.tasks=[{','.join(tasks)}]")
+
+
+def r3_specs(study: Study, planner: Planner) -> list[Spec]:
+    return _pairs(planner, planner.scale.seeds, *study.r3)
+
+
+def _digest(tasks: Sequence[str]) -> str:
+    return hashlib.sha256(json.dumps(list(tasks)).encode()).hexdigest()[:16]
+
+
+def pick_hardest(rollouts: pd.DataFrame, keep: int) -> list[str]:
+    """The ``keep`` tasks with the lowest success rate; ties broken by task name (pre-registered)."""
+    rates = rollouts.groupby("task")["success"].mean()
+    order = sorted(rates.index, key=lambda t: (float(rates[t]), str(t)))
+    return order[:keep]
+
+
+def write_screening(study: Study, spec: Spec, out: Path) -> list[str]:
+    """Pick R2's tasks from the finished screening run and write ``screening.json``.
+
+    Raises:
+        SystemExit: comparison runs started with another list (``r2_started.json``).
+    """
+    from tar_rl.io import write_json_atomic
+    from tar_rl.report import load_run
+
+    run = load_run(spec.run_dir)
+    rollouts = pd.read_csv(_csv(spec.run_dir, "eval_rollouts.csv"))
+    tasks = pick_hardest(rollouts[rollouts["step"] == rollouts["step"].max()], study.screen_keep)
+    started = out / STARTED_FILE
+    if started.is_file() and json.loads(started.read_text())["tasks"] != tasks:
+        raise SystemExit(
+            f"regimes: R2's comparison runs started with the tasks in {started}; the screening now gives {tasks}. "
+            "The list is fixed once comparison runs start: remove the R2 runs and that file to screen again."
+        )
+    rates = rollouts.groupby("task")["success"].mean()
+    write_json_atomic(
+        {
+            "tasks": tasks,
+            "digest": _digest(tasks),
+            "rule": f"the {study.screen_keep} tasks with the lowest success of the screening run; ties by name",
+            "screening_run": run.name,
+            "success": {t: float(rates[t]) for t in sorted(rates.index)},
+        },
+        out / SCREENING_FILE,
+    )
+    return tasks
+
+
+def check_started(out: Path, tasks: Sequence[str]) -> None:
+    """Record R2's task list when its comparison runs start; refuse a list that differs from the recorded one."""
+    from tar_rl.io import write_json_atomic
+
+    started = out / STARTED_FILE
+    if started.is_file():
+        recorded = json.loads(started.read_text())["tasks"]
+        if list(recorded) != list(tasks):
+            raise SystemExit(
+                f"regimes: {out / SCREENING_FILE} lists {list(tasks)} but R2's comparison runs started with "
+                f"{recorded} ({started}): a screening list may not change after comparison runs started"
+            )
+        return
+    write_json_atomic({"tasks": list(tasks), "digest": _digest(tasks)}, started)
+
+
+# -- Collecting raw results --------------------------------------------------------------------------
+
+
+def _csv(run_dir: Path, name: str) -> Path:
+    path = run_dir / name
+    return path if path.is_file() else run_dir / f"{name}.gz"
+
+
+def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[str]:
+    """Copy the finished runs of ``src`` into ``out/runs`` (logs gzip-compressed; checkpoints only for
+    the run names in ``keep_checkpoint``); returns the names copied. Runs already there are skipped."""
+    copied = []
+    for run in sorted(p for p in src.iterdir() if (p / "summary.json").is_file()):
+        if not json.loads((run / "summary.json").read_text()).get("finished"):
+            continue
+        target = out / "runs" / run.name
+        if (target / "summary.json").is_file():
+            continue
+        tmp = target.with_name(f".{run.name}.tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for name in KEPT:
+            shutil.copy2(run / name, tmp / name)
+        for name in PACKED:
+            if (run / name).is_file():
+                with open(run / name, "rb") as f_in, gzip.GzipFile(tmp / f"{name}.gz", "wb", mtime=0) as f_out:
+                    shutil.copyfileobj(f_in, f_out)
+        if run.name in keep_checkpoint:
+            shutil.copy2(run / "checkpoint.pt", tmp / "checkpoint.pt")
+        tmp.rename(target)
+        copied.append(run.name)
+    return copied
+
+
+# -- The table -------------------------------------------------------------------------------------
+
+
+def _fit(run) -> dict:
+    return run.summary.get("fit") or {}
+
+
+def check_pairs(runs: Sequence) -> None:
+    """Refuse a pair (same regime setting and seed) whose two runs were trained at different commits or machines."""
+    by_seed: dict[int, list] = {}
+    for run in runs:
+        by_seed.setdefault(run.seed, []).append(run)
+    for seed, pair in sorted(by_seed.items()):
+        commits = {r.summary.get("git_commit") for r in pair}
+        hosts = {(r.summary.get("machine") or {}).get("hostname") for r in pair}
+        if len(commits) > 1 or len(hosts) > 1:
+            names = ", ".join(r.name for r in pair)
+            what = "commits" if len(commits) > 1 else "machines"
+            raise SystemExit(f"regimes: the pair of seed {seed} ({names}) was trained at different {what}; re-run one")
+
+
+def _mean(values) -> float:
+    values = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    return sum(values) / len(values) if values else math.nan
+
+
+def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
+    """One decision-table row (success, Fast20, NEPS statistics and fit diagnostics) and the per-group rows."""
+    from tar_rl.report import min_detectable_effect, paired_table
+
+    paired = paired_table(runs, objectives=[TREATMENT], file=_Quiet())
+    row: dict = {"regime": label}
+    for metric in ("success", "fast20", "neps"):
+        rec = paired[(paired["metric"] == metric) & (paired["level"] == "overall")].iloc[0]
+        row[f"{metric}_uniform"] = rec["baseline_mean"]
+        row[f"{metric}_tar"] = rec["objective_mean"]
+        row[f"d_{metric}"] = rec["delta_mean"]
+        row[f"d_{metric}_ci_low"], row[f"d_{metric}_ci_high"] = rec["ci_low"], rec["ci_high"]
+        row[f"p_{metric}"] = rec["p_value"]
+        if metric == "success":
+            row["pairs"] = int(rec["n_pairs"])
+            row["mde_success"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
+    for obj in (BASELINE, TREATMENT):
+        mine = [r for r in runs if r.objective == obj and r.finished]
+        fits = [_fit(r) for r in mine]
+        row[f"passes_{obj}"] = _mean(f.get("passes") for f in fits)
+        row[f"train_loss_{obj}"] = _mean(f.get("final_uniform_loss") for f in fits)
+        row[f"heldout_loss_{obj}"] = _mean((f.get("heldout") or {}).get("loss") for f in fits)
+        row[f"alignment_{obj}"] = _mean((f.get("alignment") or {}).get("spearman") for f in fits)
+    groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(regime=label)
+    return row, groups
+
+
+class _Quiet:
+    def write(self, _text: str) -> int:
+        return 0
+
+
+def _fmt(v: float, digits: int = 1, signed: bool = False) -> str:
+    if v is None or not math.isfinite(v):
+        return "-"
+    return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
+
+
+def _fmt_p(p: float) -> str:
+    return "-" if p is None or not math.isfinite(p) else ("<0.001" if p < 0.001 else f"{p:.3f}")
+
+
+def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[str, list[str]]) -> str:
+    """The decision table, per-group rows and notes on missing runs, as markdown (no provenance: it is recomputed
+    exactly from the committed runs)."""
+    lines = [
+        "| regime | pairs | success % U / T | Δ success [95% CI] | p | Holm p | MDE (80%) | Δ Fast20 | Δ NEPS "
+        "| passes | final train loss U / T | held-out loss U / T | alignment U / T |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ci = f"[{_fmt(r['d_success_ci_low'], 2, True)}, {_fmt(r['d_success_ci_high'], 2, True)}]"
+        lines.append(
+            f"| {r['regime']} | {r['pairs']} | {_fmt(r['success_uniform'])} / {_fmt(r['success_tar'])} "
+            f"| {_fmt(r['d_success'], 2, True)} {ci} | {_fmt_p(r['p_success'])} | {_fmt_p(r['holm_p'])} "
+            f"| {_fmt(r['mde_success'], 2)} | {_fmt(r['d_fast20'], 2, True)} | {_fmt(r['d_neps'], 2, True)} "
+            f"| {_fmt(r['passes_uniform'], 0)} | {_fmt(r['train_loss_uniform'], 4)} / {_fmt(r['train_loss_tar'], 4)} "
+            f"| {_fmt(r['heldout_loss_uniform'], 4)} / {_fmt(r['heldout_loss_tar'], 4)} "
+            f"| {_fmt(r['alignment_uniform'], 2, True)} / {_fmt(r['alignment_tar'], 2, True)} |"
+        )
+    out = ["# Where does TAR help? Decision table", "", *lines, ""]
+    out += [
+        "Success, Fast20 and NEPS in 100 x units; Δ = TAR - uniform over paired seeds (lower Fast20/NEPS is better). "
+        "Holm: over the primary comparisons (" + ", ".join(PRIMARY) + "). MDE: the smallest true Δ success a paired "
+        "t-test detects with 80% power at the observed spread. Alignment: Spearman correlation over ten bins of "
+        "episode time between TAR's weight on training demonstrations and the held-out per-step loss.",
+        "",
+        "## Success per difficulty group",
+        "",
+        "| regime | group | pairs | uniform % | TAR % | Δ [95% CI] | p |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for g in groups.to_dict("records"):
+        ci = f"[{_fmt(g['ci_low'], 2, True)}, {_fmt(g['ci_high'], 2, True)}]"
+        out.append(
+            f"| {g['regime']} | {g['level']} | {g['n_pairs']} | {_fmt(g['baseline_mean'])} "
+            f"| {_fmt(g['objective_mean'])} | {_fmt(g['delta_mean'], 2, True)} {ci} | {_fmt_p(g['p_value'])} |"
+        )
+    pending = {k: v for k, v in missing.items() if v}
+    if pending:
+        out += ["", "## Not finished yet", ""]
+        out += [
+            f"- {k}: {len(v)} run(s) ({', '.join(v[:4])}{', ...' if len(v) > 4 else ''})" for k, v in pending.items()
+        ]
+    return "\n".join(out) + "\n"
+
+
+def planned(study: Study, planner: Planner, out: Path) -> dict[str, list[Spec]]:
+    """Every regime's planned runs (R1 needs its source to have finished, R2 its screening list)."""
+    plans: dict[str, list[Spec]] = {}
+    source = source_spec(study, planner)
+    if source.finished:
+        plans["R1"] = r1_specs(study, planner, source, study.r1_budgets[:1])
+        plans["R1-10"] = r1_specs(study, planner, source, study.r1_budgets[1:])
+    tasks = screening(out)
+    if tasks is not None:
+        plans["R2"] = r2_specs(study, planner, tasks)
+    plans["R3"] = r3_specs(study, planner)
+    return plans
+
+
+def write_tables(study: Study, planner: Planner, out: Path, prov: dict, dest: Path | None = None) -> str:
+    """The decision table (markdown + CSV), per-group CSV and Fig. 3 per regime from the finished runs of
+    ``out``, written into ``dest`` (default ``out``); returns the markdown."""
+    dest = out if dest is None else dest
+    from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
+    from tar_rl.report import compare, holm, load_run, plot_success_vs_neps
+
+    rows, groups, figure, missing = [], [], [], {}
+    screened = screening(out)
+    for label, specs in planned(study, planner, out).items():
+        done = [s for s in specs if s.finished]
+        missing[label] = [s.run_dir.name for s in specs if not s.finished]
+        runs = [load_run(s.run_dir) for s in done]
+        if label == "R2" and screened is not None:
+            for run in runs:
+                if list(run.config["data"]["tasks"]) != list(screened):
+                    raise SystemExit(f"regimes: {run.name} trained on tasks other than {out / SCREENING_FILE}'s")
+        seeds = {r.seed for r in runs if r.objective == BASELINE} & {r.seed for r in runs if r.objective == TREATMENT}
+        runs = [r for r in runs if r.seed in seeds]
+        if not seeds:
+            continue
+        check_pairs(runs)
+        row, group = regime_rows(label, runs)
+        rows.append(row)
+        groups.append(group)
+        table = compare(runs, file=_Quiet())
+        figure.append(table[table["objective"].isin([BASELINE, TREATMENT])].assign(policy=label))
+    primary = [i for i, r in enumerate(rows) if r["regime"] in PRIMARY]
+    adjusted = holm([rows[i]["p_success"] for i in primary])
+    for r in rows:
+        r["holm_p"] = math.nan
+    for i, p in zip(primary, adjusted):
+        rows[i]["holm_p"] = p
+    group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
+    md = decision_markdown(rows, group_df, missing)
+    atomic_write(dest / "decision.md", lambda f: f.write(md))
+    write_csv_atomic(pd.DataFrame(rows).round(6), dest / "decision.csv")
+    if len(group_df):
+        write_csv_atomic(group_df.round(6), dest / "groups.csv")
+    write_json_atomic(prov, dest / "provenance.json")
+    if figure:
+        fig_table = pd.concat(figure, ignore_index=True)
+        plot_success_vs_neps(fig_table, dest / "fig3_regimes.png", caption="regimes as families: uniform -> TAR")
+    return md
+
+
+# -- Command line ----------------------------------------------------------------------------------
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="regimes.py", description="The pre-registered regime study: runs and tables.")
+    p.add_argument("command", choices=COMMANDS)
+    p.add_argument("--scale", default="cpu", choices=sorted(STUDIES))
+    p.add_argument("--out", default=None, help="results folder (default: benchmarks/results/regimes, ci: required)")
+    p.add_argument("--data-root", default="datasets", help="dataset cache folder (default: ./datasets)")
+    p.add_argument("--jobs", type=int, default=None, help="runs trained at once (default: the scale's)")
+    p.add_argument("--seeds", type=_ints, default=None, help="override the seeds of the pairs")
+    p.add_argument("--budgets", type=_ints, default=None, help="r1: only these demonstration budgets")
+    p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
+    p.add_argument("--tables", default=None, help="table: write the tables here instead of into --out")
+    p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point (module docstring). Returns 0, or 1 when a run failed (the others still ran)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = _parser().parse_args(argv)
+    study = STUDIES[args.scale]
+    if args.seeds is not None:
+        study = replace(study, scale=replace(study.scale, seeds=args.seeds))
+    jobs = study.scale.jobs if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise SystemExit(f"regimes: --jobs must be >= 1, got {jobs}")
+    if args.out is None and args.scale != "cpu":
+        raise SystemExit("regimes: --out is required with --scale ci (the default folder holds the study's results)")
+    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "regimes"
+    planner = Planner(study.scale, out, args.data_root)
+    logs = out / "logs"
+    failed: list[Spec] = []
+    if args.command == "collect":
+        if not args.source:
+            raise SystemExit("regimes: collect needs --from DIR (a runs folder)")
+        names = collect(Path(args.source), out, keep_checkpoint=[source_spec(study, planner).run_dir.name])
+        print(f"copied {len(names)} finished run(s) into {out / 'runs'}: " + ", ".join(names))
+        return 0
+    if args.command == "r1":
+        source = source_spec(study, planner)
+        failed += execute(study.scale, [source], 1, args.dry_run, logs)
+        if not source.finished:
+            print("R1's source has not finished: its post-training runs are planned once it has")
+        else:
+            failed += execute(study.scale, r1_specs(study, planner, source, args.budgets), jobs, args.dry_run, logs)
+    elif args.command == "r2-screen":
+        spec = planner.spec(*study.screen)
+        failed += execute(study.scale, [spec], 1, args.dry_run, logs)
+        if spec.finished:
+            print(f"R2's tasks: {write_screening(study, spec, out)} ({out / SCREENING_FILE})")
+    elif args.command == "r2":
+        tasks = screening(out)
+        if tasks is None:
+            raise SystemExit(f"regimes: no {out / SCREENING_FILE} yet; run `r2-screen` first")
+        specs = r2_specs(study, planner, tasks)
+        if not args.dry_run:
+            check_started(out, tasks)
+        failed += execute(study.scale, specs, jobs, args.dry_run, logs)
+    elif args.command == "r3":
+        failed += execute(study.scale, r3_specs(study, planner), jobs, args.dry_run, logs)
+    elif args.command == "table":
+        dest = Path(args.tables) if args.tables else out
+        dest.mkdir(parents=True, exist_ok=True)
+        print(write_tables(study, planner, out, provenance(study.scale, argv), dest))
+    if failed:
+        print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
