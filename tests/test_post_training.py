@@ -145,3 +145,31 @@ def test_missing_unfinished_and_corrupt_sources_are_refused(tmp_path, data_root,
     with pytest.raises(ConfigError, match="the checkpoint lacks 'task_ids'"):
         validate(_post(tmp_path, data_root, no_tasks))
     assert not (tmp_path / "runs").exists()
+
+
+class _Crash(Exception):
+    pass
+
+
+def test_a_killed_post_training_run_resumes_to_the_same_final_weights(tmp_path, data_root, source, monkeypatch):
+    from tar_rl.data import SegmentSampler
+
+    whole = train(_post(tmp_path / "whole", data_root, source))
+    config = _post(tmp_path / "killed", data_root, source)
+    calls = {"n": 0}
+    original = SegmentSampler.sample
+
+    def sample(self):
+        calls["n"] += 1
+        if calls["n"] == 17:  # steps 1..16 done, the checkpoint of step 10 written
+            raise _Crash
+        return original(self)
+
+    monkeypatch.setattr(SegmentSampler, "sample", sample)
+    with pytest.raises(_Crash):
+        train(config)
+    monkeypatch.setattr(SegmentSampler, "sample", original)
+    resumed = train(config)
+    assert resumed.name == whole.name
+    a, b = load_checkpoint(whole)["policy"], load_checkpoint(resumed)["policy"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
