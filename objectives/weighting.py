@@ -28,6 +28,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from tar_rl.registry import Registry
+
 __all__ = [
     "CAP_MODES",
     "DEFAULT_EPS",
@@ -453,35 +455,31 @@ def _shuffle(losses, valid, params, mix, generator):
     return shuffle_weights(losses, valid, mix=mix, generator=generator, **_param_kwargs(params))
 
 
-WEIGHTINGS: dict[str, Weighting] = {
-    w.name: w
-    for w in (
-        Weighting("uniform", _uniform, summary="uniform temporal mean over valid steps (Eq. 1)"),
-        Weighting("tar", _tar, summary="time-adaptive reweighting (Eqs. 3-8)"),
-        Weighting("shuffle", _shuffle, stochastic=True, summary="TAR's weights permuted among a segment's valid steps"),
-        Weighting("random", _random, stochastic=True, summary="random scores through TAR's normalisation"),
-        Weighting("invert", _invert, summary="TAR's emphasis reversed (TAR on the negated losses)"),
-        Weighting(
-            "perturb_high",
-            _uniform,
-            perturb="high",
-            stochastic=True,
-            summary="noise on the expert actions of the steps TAR up-weights, uniform mean",
-        ),
-        Weighting(
-            "perturb_low",
-            _uniform,
-            perturb="low",
-            stochastic=True,
-            summary="noise on the expert actions of the steps TAR down-weights, uniform mean",
-        ),
-    )
-}
+WEIGHTINGS: Registry[Weighting] = Registry("weighting")
+for _w in (
+    Weighting("uniform", _uniform, summary="uniform temporal mean over valid steps (Eq. 1)"),
+    Weighting("tar", _tar, summary="time-adaptive reweighting (Eqs. 3-8)"),
+    Weighting("shuffle", _shuffle, stochastic=True, summary="TAR's weights permuted among a segment's valid steps"),
+    Weighting("random", _random, stochastic=True, summary="random scores through TAR's normalisation"),
+    Weighting("invert", _invert, summary="TAR's emphasis reversed (TAR on the negated losses)"),
+    Weighting(
+        "perturb_high",
+        _uniform,
+        perturb="high",
+        stochastic=True,
+        summary="noise on the expert actions of the steps TAR up-weights, uniform mean",
+    ),
+    Weighting(
+        "perturb_low",
+        _uniform,
+        perturb="low",
+        stochastic=True,
+        summary="noise on the expert actions of the steps TAR down-weights, uniform mean",
+    ),
+):
+    WEIGHTINGS.register(_w.name, _w)
 
 
 def get_weighting(name: str) -> Weighting:
     """The registered weighting called ``name``; a clear error listing the names otherwise."""
-    try:
-        return WEIGHTINGS[name]
-    except (KeyError, TypeError):
-        raise ValueError(f"unknown weighting {name!r}; registered: {', '.join(WEIGHTINGS)}.") from None
+    return WEIGHTINGS.get(name)

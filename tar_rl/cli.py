@@ -38,23 +38,12 @@ def _parser() -> argparse.ArgumentParser:
     data_commands = data.add_subparsers(dest="data_command", required=True)
     imp = data_commands.add_parser("import", help="import demonstrations from another format")
     formats = imp.add_subparsers(dest="format", required=True, metavar="FORMAT")
-    rm = formats.add_parser("robomimic", help="robomimic / LIBERO HDF5 files (low-dimensional observations)")
-    rm.add_argument("files", nargs="+", metavar="FILE", help="HDF5 files, one task per file")
-    rm.add_argument(
-        "--obs-keys",
-        required=True,
-        help="obs/<key> entries to concatenate, in order (e.g. robot0_eef_pos,robot0_eef_quat,object)",
-    )
-    rm.add_argument("--filter", help="import only the demos of mask/<FILTER> (e.g. train); default: every demo")
-    lr = formats.add_parser("lerobot", help="a LeRobot dataset on local disk (v3.x / v2.x, or TorchRL's copy of one)")
-    lr.add_argument("folder", help="the dataset folder (meta/info.json, data/), or TorchRL's converted copy")
-    lr.add_argument(
-        "--obs-keys",
-        default="observation.state",
-        help="state columns to concatenate, in order (default: observation.state)",
-    )
-    lr.add_argument("--action-key", default="action", help="the action column (default: action)")
-    for p in (rm, lr):  # what every import takes
+    from tar_rl.importers import IMPORTERS
+
+    for importer in IMPORTERS.values():
+        p = formats.add_parser(importer.name, help=importer.help)
+        importer.add_arguments(p)
+        # what every import takes
         p.add_argument("--out", default="data", help="folder holding datasets (default: data)")
         p.add_argument("--chunk-horizon", type=int, default=8, help="H of action_chunk (default 8)")
         p.add_argument("--history", type=int, default=2, help="K of observation_history (default 2)")
@@ -118,14 +107,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def _data_command(args: argparse.Namespace) -> int:
     if args.data_command == "import":
-        from tar_rl.importers import DemoImportError, import_lerobot, import_robomimic
+        from tar_rl.importers import IMPORTERS, DemoImportError
 
         common = {"out": args.out, "chunk_horizon": args.chunk_horizon, "history": args.history, "clip": args.clip}
         try:
-            if args.format == "robomimic":
-                import_robomimic(args.files, args.obs_keys, filter_key=args.filter, **common)
-            else:
-                import_lerobot(args.folder, args.obs_keys, action_key=args.action_key, **common)
+            IMPORTERS.get(args.format).run(args, **common)
         except DemoImportError as err:
             raise SystemExit(f"tar-rl data import {args.format}: {err}") from None
         return 0

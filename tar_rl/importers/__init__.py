@@ -5,9 +5,17 @@
 * :func:`dataset_info` / :func:`format_info`: what ``tar-rl data info PATH`` prints, for any dataset folder.
 """
 
-from tar_rl.importers.common import DemoImportError
+from tar_rl.importers.common import IMPORTERS, DemoImportError, Importer
 from tar_rl.importers.info import dataset_info, format_info
 from tar_rl.importers.lerobot import import_lerobot
 from tar_rl.importers.robomimic import import_robomimic
 
-__all__ = ["DemoImportError", "dataset_info", "format_info", "import_lerobot", "import_robomimic"]
+__all__ = [
+    "IMPORTERS",
+    "DemoImportError",
+    "Importer",
+    "dataset_info",
+    "format_info",
+    "import_lerobot",
+    "import_robomimic",
+]

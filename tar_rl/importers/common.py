@@ -13,17 +13,29 @@ same settings and sources wrote.
 
 from __future__ import annotations
 
+import argparse
 import shutil
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from tar_rl import data as _data
+from tar_rl.registry import Registry
 
-__all__ = ["ACTION_RANGE", "DemoImportError", "check_action_range", "fingerprint", "import_folder", "parse_keys"]
+__all__ = [
+    "ACTION_RANGE",
+    "IMPORTERS",
+    "DemoImportError",
+    "Importer",
+    "check_action_range",
+    "fingerprint",
+    "import_folder",
+    "parse_keys",
+]
 
 #: The action range the policies and the evaluator assume (MetaWorld's action box).
 ACTION_RANGE = (-1.0, 1.0)
@@ -31,6 +43,28 @@ ACTION_RANGE = (-1.0, 1.0)
 
 class DemoImportError(ValueError):
     """Demonstrations cannot be imported (the message names the file or folder, the episode and the key)."""
+
+
+@dataclass(frozen=True)
+class Importer:
+    """A registered format of ``tar-rl data import FORMAT``.
+
+    Attributes:
+        name: the format's name on the command line.
+        help: one line for ``--help``.
+        add_arguments: ``(parser)``: the format's own command-line arguments (the shared ones,
+            ``--out``, ``--chunk-horizon``, ``--history``, ``--clip``, are added by the command).
+        run: ``(args, out=, chunk_horizon=, history=, clip=)``: import what ``args`` names.
+    """
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[..., object]
+
+
+#: The importers by format name (``tar-rl data import FORMAT``).
+IMPORTERS: Registry[Importer] = Registry("importer")
 
 
 def fingerprint(path: Path) -> dict:

@@ -37,6 +37,7 @@ episode whose instruction changes, raise :class:`DemoImportError` naming the epi
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 from collections.abc import Sequence
@@ -45,7 +46,15 @@ from pathlib import Path
 import numpy as np
 
 from tar_rl import data as _data
-from tar_rl.importers.common import DemoImportError, check_action_range, fingerprint, import_folder, parse_keys
+from tar_rl.importers.common import (
+    IMPORTERS,
+    DemoImportError,
+    Importer,
+    check_action_range,
+    fingerprint,
+    import_folder,
+    parse_keys,
+)
 
 __all__ = ["NAME_PREFIX", "import_lerobot"]
 
@@ -322,3 +331,24 @@ def import_lerobot(
         }
 
     return import_folder(out, NAME_PREFIX, path.name, settings, read, verbose)
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("folder", help="the dataset folder (meta/info.json, data/), or TorchRL's converted copy")
+    parser.add_argument(
+        "--obs-keys",
+        default="observation.state",
+        help="state columns to concatenate, in order (default: observation.state)",
+    )
+    parser.add_argument("--action-key", default="action", help="the action column (default: action)")
+
+
+IMPORTERS.register(
+    "lerobot",
+    Importer(
+        "lerobot",
+        "a LeRobot dataset on local disk (v3.x / v2.x, or TorchRL's copy of one)",
+        _arguments,
+        lambda args, **common: import_lerobot(args.folder, args.obs_keys, action_key=args.action_key, **common),
+    ),
+)

@@ -34,6 +34,7 @@ written by :func:`tar_rl.data.write_dataset` (temporary folder, ``metadata.json`
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import re
@@ -45,7 +46,9 @@ import numpy as np
 from tar_rl import data as _data
 from tar_rl.importers.common import (
     ACTION_RANGE,
+    IMPORTERS,
     DemoImportError,
+    Importer,
     check_action_range,
     fingerprint,
     import_folder,
@@ -286,3 +289,24 @@ def _metadata(settings, keys, sources) -> dict:
         "action_target": ACTION_TARGET,
         "versions": {"h5py": _data._version("h5py")},
     }
+
+
+def _arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("files", nargs="+", metavar="FILE", help="HDF5 files, one task per file")
+    parser.add_argument(
+        "--obs-keys",
+        required=True,
+        help="obs/<key> entries to concatenate, in order (e.g. robot0_eef_pos,robot0_eef_quat,object)",
+    )
+    parser.add_argument("--filter", help="import only the demos of mask/<FILTER> (e.g. train); default: every demo")
+
+
+IMPORTERS.register(
+    "robomimic",
+    Importer(
+        "robomimic",
+        "robomimic / LIBERO HDF5 files (low-dimensional observations)",
+        _arguments,
+        lambda args, **common: import_robomimic(args.files, args.obs_keys, filter_key=args.filter, **common),
+    ),
+)

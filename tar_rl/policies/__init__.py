@@ -26,6 +26,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.objectives import LossModule
 
 from tar_rl.collectors.tasks import TASKS
+from tar_rl.registry import Registry
 
 __all__ = [
     "POLICIES",
@@ -144,15 +145,12 @@ class PolicySpec:
     description: str = ""
 
 
-POLICIES: dict[str, PolicySpec] = {}
+POLICIES: Registry[PolicySpec] = Registry("policy")
 
 
 def register_policy(spec: PolicySpec) -> PolicySpec:
     """Add a head to :data:`POLICIES` (a name may be registered once)."""
-    if spec.name in POLICIES:
-        raise ValueError(f"a policy named {spec.name!r} is registered already")
-    POLICIES[spec.name] = spec
-    return spec
+    return POLICIES.register(spec.name, spec)
 
 
 def build_policy(cfg, info: DataInfo) -> Policy:
@@ -163,9 +161,7 @@ def build_policy(cfg, info: DataInfo) -> Policy:
     """
     is_mapping = isinstance(cfg, Mapping)
     name = cfg["name"] if is_mapping else cfg.name
-    if name not in POLICIES:
-        raise ValueError(f"unknown policy {name!r}; valid: {sorted(POLICIES)}")
-    spec = POLICIES[name]
+    spec = POLICIES.get(name)
     if not isinstance(cfg, spec.config):
         values = dict(cfg) if is_mapping else dataclasses.asdict(cfg)
         known = {f.name for f in dataclasses.fields(spec.config)}

@@ -1,0 +1,87 @@
+"""The one kind of registry: named entries of one kind (weightings, policy heads, simulator suites, importers).
+
+Every choice a user makes by name (``objective=tar``, ``policy=act``, ``data.suite=dm_control``,
+``tar-rl data import lerobot``) is looked up in a :class:`Registry`: register by name, list the
+names, get or build by name; an unknown name is refused with the registered ones listed. The
+recipe's Hydra config groups and the command line's choices are generated from the registries, so
+adding an entry is one new module plus its ``register`` call.
+
+This module imports nothing from the project: every layer (``objectives`` included) may use it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Generic, TypeVar
+
+__all__ = ["Registry", "UnknownName"]
+
+T = TypeVar("T")
+
+
+class UnknownName(ValueError):
+    """A name no entry of a registry has (the message lists the registered names)."""
+
+
+class Registry(Generic[T]):
+    """Entries of one kind by name, in registration order.
+
+    Args:
+        kind: what the entries are, for messages (``"weighting"``, ``"policy"``, ...).
+
+    Entries with a ``build`` attribute are built by :meth:`build`: ``registry.build(name, *args)``
+    is ``registry[name].build(*args)``.
+    """
+
+    def __init__(self, kind: str):
+        self.kind = kind
+        self._entries: dict[str, T] = {}
+
+    def register(self, name: str, entry: T) -> T:
+        """Add ``entry`` under ``name`` (a name may be registered once); returns ``entry``."""
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"a {self.kind} needs a non-empty name, got {name!r}")
+        if name in self._entries:
+            raise ValueError(f"a {self.kind} named {name!r} is registered already")
+        self._entries[name] = entry
+        return entry
+
+    def names(self) -> list[str]:
+        """The registered names, in registration order."""
+        return list(self._entries)
+
+    def get(self, name: str) -> T:
+        """The entry called ``name``.
+
+        Raises:
+            UnknownName: no such entry; the message lists the registered names.
+        """
+        try:
+            return self._entries[name]
+        except (KeyError, TypeError):
+            raise UnknownName(f"unknown {self.kind} {name!r}; registered: {', '.join(self._entries)}") from None
+
+    def build(self, name: str, *args, **kwargs):
+        """``get(name).build(*args, **kwargs)``."""
+        return self.get(name).build(*args, **kwargs)
+
+    def __getitem__(self, name: str) -> T:
+        return self.get(name)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._entries
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._entries)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def items(self):
+        return self._entries.items()
+
+    def values(self):
+        return self._entries.values()
+
+    def __repr__(self) -> str:
+        return f"Registry({self.kind!r}: {', '.join(self._entries)})"
