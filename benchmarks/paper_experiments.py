@@ -238,8 +238,7 @@ class Planner:
         self.scale, self.out, self.data_root, self.extra = scale, out, data_root, tuple(extra)
 
     def spec(self, *overrides: str) -> Spec:
-        from tar_rl.recipes.offline_bc import ConfigError, validate
-        from tar_rl.runs import run_name
+        from tar_rl.recipes.offline_bc import ConfigError, run_name, validate
 
         items = (
             *self.scale.common,

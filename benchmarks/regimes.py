@@ -56,8 +56,7 @@ SOURCE_TASKS = (
     "push-back,push,push-wall,reach-wall,shelf-place,soccer,stick-push,sweep-into,sweep,window-close,window-open"
 )
 SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
-# Files of a run kept in the repository; the logs gzip-compressed.
-KEPT = ("config.yaml", "summary.json")
+# Files of a run kept in the repository beside config.yaml and summary.json, gzip-compressed.
 PACKED = ("eval_rollouts.csv", "metrics.csv", "weights.csv")
 
 
@@ -307,27 +306,37 @@ def _csv(run_dir: Path, name: str) -> Path:
 
 def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[str]:
     """Copy the finished runs of ``src`` into ``out/runs`` (logs gzip-compressed; checkpoints only for
-    the run names in ``keep_checkpoint``); returns the names copied. Runs already there are skipped."""
+    the run names in ``keep_checkpoint``); returns the names copied. Runs already there are skipped.
+
+    Each copy is named by its identity as this code computes it from the run's config (a run trained
+    by code that named runs otherwise gets its current name; its summary's ``run_name`` follows)."""
+    import yaml
+
+    from tar_rl.io import write_json_atomic
+    from tar_rl.recipes.offline_bc import run_name
+
     copied = []
     for run in sorted(p for p in src.iterdir() if (p / "summary.json").is_file()):
-        if not json.loads((run / "summary.json").read_text()).get("finished"):
+        summary = json.loads((run / "summary.json").read_text())
+        if not summary.get("finished"):
             continue
-        target = out / "runs" / run.name
+        name = run_name(yaml.safe_load((run / "config.yaml").read_text()))
+        target = out / "runs" / name
         if (target / "summary.json").is_file():
             continue
-        tmp = target.with_name(f".{run.name}.tmp")
+        tmp = target.with_name(f".{name}.tmp")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        for name in KEPT:
-            shutil.copy2(run / name, tmp / name)
-        for name in PACKED:
-            if (run / name).is_file():
-                with open(run / name, "rb") as f_in, gzip.GzipFile(tmp / f"{name}.gz", "wb", mtime=0) as f_out:
+        shutil.copy2(run / "config.yaml", tmp / "config.yaml")
+        write_json_atomic({**summary, "run_name": name}, tmp / "summary.json")
+        for log in PACKED:
+            if (run / log).is_file():
+                with open(run / log, "rb") as f_in, gzip.GzipFile(tmp / f"{log}.gz", "wb", mtime=0) as f_out:
                     shutil.copyfileobj(f_in, f_out)
-        if run.name in keep_checkpoint:
+        if name in keep_checkpoint:
             shutil.copy2(run / "checkpoint.pt", tmp / "checkpoint.pt")
         tmp.rename(target)
-        copied.append(run.name)
+        copied.append(name)
     return copied
 
 

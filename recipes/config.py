@@ -41,6 +41,7 @@ __all__ = [
     "ObjectiveConfig",
     "OptimConfig",
     "TrainConfig",
+    "default_config",
     "register_configs",
 ]
 
@@ -296,8 +297,9 @@ class TrainConfig:
         device: ``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``.
         runs_root: folder holding run directories.
         run_dir: this run's directory; empty: ``<runs_root>/<objective>-<policy>-s<seed>-<hash>``
-            with a hash of the settings that change the result, so the same command finds (and
-            resumes) the same run and a different one never mixes with it.
+            with a hash of the settings that change the result and differ from the default job of
+            the same objective and head, so the same command finds (and resumes) the same run and a
+            different one never mixes with it.
     """
 
     defaults: list[Any] = field(default_factory=_defaults)
@@ -355,3 +357,16 @@ def register_configs() -> None:
     for group, options in PRESETS.items():
         for name, node in options.items():
             cs.store(group=group, name=name, node=node)
+
+
+def default_config(objective: str, policy: str) -> dict:
+    """The default job's settings for ``objective`` and the head ``policy``, as a plain dict (what ``tar-rl train
+    objective=<objective> policy=<policy>`` resolves to). A run's identity is measured against it."""
+    import dataclasses
+
+    presets = {group: options["default"] for group, options in PRESETS.items()}
+    head = POLICIES.get(policy).config(name=policy)
+    config = dataclasses.asdict(TrainConfig(objective=ObjectiveConfig(name=objective), policy=head, **presets))
+    config.pop("defaults", None)
+    config.pop("hydra", None)
+    return config

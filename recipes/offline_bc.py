@@ -43,7 +43,7 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl import distributed
+from tar_rl import distributed, runs
 from tar_rl.collectors import dmc, libero
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
@@ -57,20 +57,18 @@ from tar_rl.runs import (
     RunLogs,
     config_differences,
     git_commit,
-    identity,
     json_metric,
     last_metric,
     load_checkpoint,
     machine,
     print_table,
     rollout_records,
-    run_name,
     save_checkpoint,
     summary_rows,
 )
 
 from . import diagnose, post_training
-from .config import CONFIG_NAME, register_configs
+from .config import CONFIG_NAME, default_config, register_configs
 
 __all__ = [
     "ConfigError",
@@ -85,6 +83,7 @@ __all__ = [
     "policy_from_checkpoint",
     "record_weights",
     "resolve_config",
+    "run_name",
     "train",
     "validate",
 ]
@@ -610,8 +609,7 @@ def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> Tens
 
 
 def _with_defaults(saved: dict) -> dict:
-    """A saved config completed with today's defaults for settings added since it was written."""
-    from .config import PRESETS, ObjectiveConfig, TrainConfig
+    """A saved config completed with the defaults of settings it does not hold."""
 
     def merge(base: dict, over: dict) -> dict:
         out = dict(base)
@@ -619,10 +617,18 @@ def _with_defaults(saved: dict) -> dict:
             out[key] = merge(base[key], value) if isinstance(value, dict) and isinstance(base.get(key), dict) else value
         return out
 
-    policy = POLICIES[saved["policy"]["name"]].config() if saved["policy"]["name"] in POLICIES else {}
-    presets = {group: options["default"] for group, options in PRESETS.items()}
-    defaults = resolve_config(TrainConfig(objective=ObjectiveConfig(), policy=policy, **presets))
-    return merge(defaults, copy.deepcopy(saved))
+    return merge(default_config(saved["objective"]["name"], saved["policy"]["name"]), copy.deepcopy(saved))
+
+
+def run_name(config: dict) -> str:
+    """The run's directory name: ``<objective>-<policy>-s<seed>-<hash>`` (:func:`tar_rl.runs.run_name` measured
+    against the default job of its objective and head)."""
+    return runs.run_name(config, default_config(config["objective"]["name"], config["policy"]["name"]))
+
+
+def identity(config: dict) -> dict:
+    """The settings that make the run differ from the default job (:func:`tar_rl.runs.identity`)."""
+    return runs.identity(config, default_config(config["objective"]["name"], config["policy"]["name"]))
 
 
 def evaluate_checkpoint(

@@ -16,9 +16,12 @@ from pathlib import Path
 
 import torch
 
+from tar_rl import runs
 from tar_rl.policies import DataInfo, Policy
 from tar_rl.policies.conditioning import TaskEncoder
-from tar_rl.runs import CHECKPOINT, load_checkpoint, run_name
+from tar_rl.runs import CHECKPOINT, load_checkpoint
+
+from .config import default_config
 
 __all__ = ["InitError", "Source", "apply_init", "check_fits", "load_source"]
 
@@ -86,7 +89,8 @@ def load_source(where: str) -> Source:
         weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
         task_ids = tuple(int(i) for i in state["task_ids"])
         info = DataInfo.from_dict(state["data_info"])
-        name = run_name(state["config"])
+        config = state["config"]
+        name = runs.run_name(config, default_config(config["objective"]["name"], config["policy"]["name"]))
     except (KeyError, TypeError, ValueError) as err:
         raise InitError(
             f"init.from={where}: the checkpoint lacks {err} (the policy, its data description or the task ids it "

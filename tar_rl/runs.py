@@ -62,23 +62,33 @@ NOT_IDENTITY = (
 )
 
 
-# Settings added after runs were made, with the value that computes what runs made before them
-# computed: at that value they are left out of the identity, so earlier runs keep their names and
-# stay resumable.
-# A third entry names the heads a setting was added to (the others had it from the start).
-ADDED_LATER = (
-    (("data", "path"), None),
-    (("data", "suite"), "metaworld"),
-    (("policy", "observation"), "state", ("act", "octo_linear", "octo_diffusion", "flow")),
-)
+def _differences(config: dict, defaults: dict) -> dict:
+    """The entries of ``config`` whose value differs from ``defaults`` (nested dicts compared entry by entry;
+    an entry ``defaults`` lacks always differs, one ``config`` lacks never does)."""
+    out = {}
+    for key, value in config.items():
+        default = defaults.get(key, _ABSENT) if isinstance(defaults, dict) else _ABSENT
+        if isinstance(value, dict) and isinstance(default, dict):
+            nested = _differences(value, default)
+            if nested:
+                out[key] = nested
+        elif value != default:
+            out[key] = copy.deepcopy(value)
+    return out
 
 
-def identity(config: dict) -> dict:
-    """The settings that determine what a run computes: ``config`` without :data:`NOT_IDENTITY`
-    (and without the :data:`ADDED_LATER` settings left at their neutral value).
+_ABSENT = object()
 
-    A post-training run (``init.from``) is identified by its source run's name, ``init.source``
-    (which holds the source's own identity hash), not by the source's path.
+
+def identity(config: dict, defaults: dict) -> dict:
+    """The settings that determine what a run computes, measured against the default job: the entries of
+    ``config`` that differ from ``defaults`` (the default config of the same objective and head), without
+    :data:`NOT_IDENTITY`.
+
+    Measuring against the defaults keeps names stable when a setting is added with a default that
+    computes what runs computed before it; changing a default changes the name of every run that
+    relied on it, as it should. A post-training run (``init.from``) is identified by its source
+    run's name, ``init.source`` (which holds the source's own identity hash), not by its path.
 
     Raises:
         ValueError: ``init.from`` is set but ``init.source`` has not been filled in (the recipe's
@@ -87,25 +97,19 @@ def identity(config: dict) -> dict:
     init = config.get("init") or {}
     if init.get("from") and not init.get("source"):
         raise ValueError("init.from is set but init.source is not: validate the config first")
-    ident = copy.deepcopy(config)
-    if not init.get("from"):
-        ident.pop("init", None)
-    policy = config.get("policy", {}).get("name")
-    drops = [(path, None, None) for path in NOT_IDENTITY] + [(*entry, None)[:3] for entry in ADDED_LATER]
-    for path, neutral, heads in drops:
-        if heads is not None and policy not in heads:
-            continue
+    ident = _differences(config, defaults)
+    for path in NOT_IDENTITY:
         node = ident
         for key in path[:-1]:
             node = node.get(key, {})
-        if path in NOT_IDENTITY or (path[-1] in node and node[path[-1]] == neutral):
-            node.pop(path[-1], None)
-    return ident
+        node.pop(path[-1], None)
+    return {k: v for k, v in ident.items() if v != {}}
 
 
-def run_name(config: dict) -> str:
-    """``<objective>-<policy>-s<seed>-<hash>``, the hash over the settings that change the result."""
-    digest = hashlib.sha256(json.dumps(identity(config), sort_keys=True).encode()).hexdigest()[:8]
+def run_name(config: dict, defaults: dict) -> str:
+    """``<objective>-<policy>-s<seed>-<hash>``, the hash over :func:`identity` (the settings that change the
+    result, measured against ``defaults``)."""
+    digest = hashlib.sha256(json.dumps(identity(config, defaults), sort_keys=True).encode()).hexdigest()[:8]
     return f"{config['objective']['name']}-{config['policy']['name']}-s{config['seed']}-{digest}"
 
 

@@ -17,8 +17,8 @@ from tensordict import TensorDict
 
 from tar_rl import distributed
 from tar_rl.collectors.tasks import task_index
-from tar_rl.recipes.offline_bc import ConfigError, Trainer, train, validate
-from tar_rl.runs import CHECKPOINT, load_checkpoint, run_name, save_checkpoint
+from tar_rl.recipes.offline_bc import ConfigError, Trainer, run_name, train, validate
+from tar_rl.runs import CHECKPOINT, load_checkpoint, save_checkpoint
 
 
 @pytest.fixture(scope="module")

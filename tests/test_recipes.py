@@ -549,12 +549,13 @@ def test_slurm_launcher_example_composes(tmp_path):
     assert "SlurmLauncher" in out.stdout and "partition: gpu" in out.stdout
 
 
-def test_settings_added_later_keep_earlier_run_names():
-    # data.path and data.suite came after many runs were made: a config without it (saved before) and one with its
-    # neutral value (None) are the same run, so those runs keep their directory names and resume.
+def test_settings_at_their_default_keep_run_names():
+    # A run is named by the settings that differ from its objective's and head's default job: a config saved
+    # before a setting existed (the setting absent) and one holding its default are the same run.
     import copy
 
-    from tar_rl.runs import config_differences, identity, run_name
+    from tar_rl.recipes.offline_bc import identity, run_name
+    from tar_rl.runs import config_differences
 
     cfg = compose_config()
     old = copy.deepcopy(cfg)
@@ -564,18 +565,11 @@ def test_settings_added_later_keep_earlier_run_names():
     assert config_differences(identity(old), identity(cfg)) == []
     assert run_name(compose_config("data.path=/some/dataset")) != run_name(cfg)
     assert run_name(compose_config("data.suite=dm_control")) != run_name(cfg)
-
-
-def test_image_observations_of_the_transformer_heads_keep_their_earlier_run_names():
-    # policy.observation came to act, octo_* and flow after their default jobs were run: these names were
-    # made by the code before it (the default job of each head, commit a7faf68), and must still be found.
-    from tar_rl.runs import identity, run_name
-
-    before = {"act": "90920e98", "flow": "0b5d8d0e", "octo_diffusion": "d2e8cb12"}
-    for head, digest in before.items():
+    for head in POLICIES:
         cfg = compose_config(f"policy={head}")
-        assert cfg["policy"]["observation"] == "state"
-        assert run_name(cfg) == f"tar-{head}-s0-{digest}"
+        assert identity(cfg) == {}  # the default job of every head differs from nothing
+        changed = identity(compose_config(f"policy={head}", "policy.observation=image", "optim.lr=0.002"))
+        assert changed == {"policy": {"observation": "image"}, "optim": {"lr": 0.002}}
         assert run_name(compose_config(f"policy={head}", "policy.observation=image")) != run_name(cfg)
-    # the mlp head had the setting from the start: it stays in its identity
-    assert identity(compose_config("policy=mlp"))["policy"]["observation"] == "state"
+    # settings that do not change what a run computes are never part of it
+    assert identity(compose_config("data.workers=3", "eval.workers=1", "logging.progress=false", "threads=2")) == {}

@@ -245,6 +245,18 @@ def test_hardest_tasks_are_the_lowest_success_ties_by_name():
     assert regimes.pick_hardest(rows, 3) == ["d", "a", "b"]
 
 
+def test_every_committed_run_folder_is_named_by_its_identity():
+    import yaml
+
+    from tar_rl.recipes.offline_bc import run_name
+
+    folders = sorted(p for p in (COMMITTED / "runs").iterdir() if p.is_dir())
+    assert folders, "no committed run"
+    for folder in folders:
+        config = yaml.safe_load((folder / "config.yaml").read_text())
+        assert folder.name == run_name(config) == json.loads((folder / "summary.json").read_text())["run_name"]
+
+
 def test_committed_tables_equal_what_the_table_command_computes(tmp_path):
     """The tables under benchmarks/results/regimes are recomputed from its committed runs."""
     if not (COMMITTED / "decision.md").is_file():
