@@ -46,7 +46,17 @@ import numpy as np
 import pandas as pd
 
 from tar_rl.io import atomic_write, write_csv_atomic
-from tar_rl.metrics import DEFAULT_GROUP_ORDER, METRIC_COLUMNS, REQUIRED_COLUMNS, as_percent, summarize
+from tar_rl.metrics import DEFAULT_GROUP_ORDER, METRIC_COLUMNS, as_percent, summarize
+from tar_rl.runs import (
+    CONFIG_FILE,
+    METRICS_COLUMNS,
+    METRICS_FILE,
+    ROLLOUTS_COLUMNS,
+    ROLLOUTS_FILE,
+    SUMMARY_FILE,
+    WEIGHTS_COLUMNS,
+    WEIGHTS_FILE,
+)
 
 __all__ = [
     "METRICS_COLUMNS",
@@ -83,12 +93,6 @@ __all__ = [
     "table_one_markdown",
 ]
 
-#: Columns of ``metrics.csv``.
-METRICS_COLUMNS: tuple[str, ...] = ("step", "phase", "name", "value")
-#: Columns of ``weights.csv``.
-WEIGHTS_COLUMNS: tuple[str, ...] = ("step", "task", "episode", "t", "loss", "weight", "gripper")
-#: Columns ``eval_rollouts.csv`` must have (the evaluator's columns the report reads, plus ``step``).
-ROLLOUT_COLUMNS: tuple[str, ...] = (*REQUIRED_COLUMNS, "step")
 #: Row order of the objectives in tables and legends; other objectives follow alphabetically.
 OBJECTIVE_ORDER: tuple[str, ...] = ("uniform", "tar", "shuffle", "random", "invert", "perturb_high", "perturb_low")
 #: The baseline of the paired differences.
@@ -144,7 +148,7 @@ class Run:
 
 
 def _is_run_dir(path: Path) -> bool:
-    return path.is_dir() and ((path / "config.yaml").is_file() or (path / "summary.json").is_file())
+    return path.is_dir() and ((path / CONFIG_FILE).is_file() or (path / SUMMARY_FILE).is_file())
 
 
 def _read_yaml(path: Path) -> dict:
@@ -240,16 +244,16 @@ def load_run(path: str | os.PathLike) -> Run:
     path = Path(path)
     if not path.is_dir():
         raise ValueError(f"{path}: not a run directory (no such directory)")
-    config_path, summary_path = path / "config.yaml", path / "summary.json"
+    config_path, summary_path = path / CONFIG_FILE, path / SUMMARY_FILE
     if not _is_run_dir(path):
-        raise ValueError(f"{path}: not a run directory (no config.yaml or summary.json in it)")
+        raise ValueError(f"{path}: not a run directory (no {CONFIG_FILE} or {SUMMARY_FILE} in it)")
     summary = _read_summary(summary_path) if summary_path.is_file() else None
     if config_path.is_file():
         config = _read_yaml(config_path)
     elif isinstance(summary.get("config"), dict):
         config = summary["config"]
     else:
-        raise ValueError(f"{path}: missing config.yaml (and summary.json holds no config)")
+        raise ValueError(f"{path}: missing {CONFIG_FILE} (and {SUMMARY_FILE} holds no config)")
 
     notes: list[str] = []
     info = summary or {}
@@ -259,7 +263,7 @@ def load_run(path: str | os.PathLike) -> Run:
     seed = info.get("seed", config.get("seed"))
     for key, value in (("objective", objective), ("policy", policy), ("seed", seed)):
         if value is None:
-            raise ValueError(f"{path}: the run's {key} is given neither in summary.json nor in config.yaml")
+            raise ValueError(f"{path}: the run's {key} is given neither in {SUMMARY_FILE} nor in {CONFIG_FILE}")
     try:
         seed = int(seed)
     except (TypeError, ValueError):
@@ -267,23 +271,23 @@ def load_run(path: str | os.PathLike) -> Run:
 
     finished = summary is not None and summary["finished"]
     if summary is None:
-        notes.append("unfinished: no summary.json yet (still training, or stopped)")
+        notes.append(f"unfinished: no {SUMMARY_FILE} yet (still training, or stopped)")
     elif not finished:
-        notes.append("unfinished: summary.json says finished: false")
+        notes.append(f"unfinished: {SUMMARY_FILE} says finished: false")
 
-    metrics_path = _run_file(path, "metrics.csv")
+    metrics_path = _run_file(path, METRICS_FILE)
     if metrics_path.is_file():
         metrics = _read_csv(metrics_path, METRICS_COLUMNS)
     elif finished:
-        raise ValueError(f"{path}: missing metrics.csv (the run's summary says it finished)")
+        raise ValueError(f"{path}: missing {METRICS_FILE} (the run's summary says it finished)")
     else:
         metrics = pd.DataFrame({c: pd.Series(dtype=object) for c in METRICS_COLUMNS})
 
-    rollouts_path = _run_file(path, "eval_rollouts.csv")
+    rollouts_path = _run_file(path, ROLLOUTS_FILE)
     final = final_step = None
     settings: dict = {}
     if rollouts_path.is_file():
-        rollouts = _read_csv(rollouts_path, ROLLOUT_COLUMNS)
+        rollouts = _read_csv(rollouts_path, ROLLOUTS_COLUMNS)
         if len(rollouts):
             try:
                 steps_col = pd.to_numeric(rollouts["step"], errors="raise")
@@ -298,7 +302,7 @@ def load_run(path: str | os.PathLike) -> Run:
             settings = _eval_settings(config, rows)
     if final is None and finished:
         finished = False
-        notes.append("unfinished: no final evaluation rows in eval_rollouts.csv")
+        notes.append(f"unfinished: no final evaluation rows in {ROLLOUTS_FILE}")
 
     steps = info.get("steps")
     if finished and steps is not None and final_step != steps:
@@ -306,7 +310,7 @@ def load_run(path: str | os.PathLike) -> Run:
     if finished and summary.get("final"):
         _check_summary_agrees(summary["final"], final, notes)
 
-    weights_path = _run_file(path, "weights.csv")
+    weights_path = _run_file(path, WEIGHTS_FILE)
     weights = _read_csv(weights_path, WEIGHTS_COLUMNS) if weights_path.is_file() else None
     if weights is not None and len(weights) == 0:
         weights = None
@@ -345,8 +349,8 @@ def _check_summary_agrees(records: Any, final: pd.DataFrame | None, notes: list[
     recomputed = float(final.loc[final["level"] == "overall", "success"].iloc[0])
     if not math.isclose(written, recomputed, abs_tol=1e-9):
         notes.append(
-            f"summary.json gives overall success {written:.4f}, eval_rollouts.csv gives {recomputed:.4f} "
-            "(the report uses eval_rollouts.csv)"
+            f"{SUMMARY_FILE} gives overall success {written:.4f}, {ROLLOUTS_FILE} gives {recomputed:.4f} "
+            f"(the report uses {ROLLOUTS_FILE})"
         )
 
 
@@ -371,7 +375,9 @@ def expand_run_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
             continue
         children = sorted(c for c in p.iterdir() if _is_run_dir(c))
         if not children:
-            raise ValueError(f"{p}: not a run directory (no config.yaml or summary.json) and holds no run directories")
+            raise ValueError(
+                f"{p}: not a run directory (no {CONFIG_FILE} or {SUMMARY_FILE}) and holds no run directories"
+            )
         out.extend(children)
     return out
 
