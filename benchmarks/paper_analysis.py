@@ -23,10 +23,17 @@ import numpy as np
 import pandas as pd
 
 from tar_rl.report.phases import PHASES, first_gripper_close, phase_labels
-from tar_rl.report.plots import check_table, new_figure, provenance, save_png, true_spans, zero_nan
+from tar_rl.report.plots import (
+    check_table,
+    check_weights_table,
+    new_figure,
+    provenance,
+    save_png,
+    true_spans,
+    zero_nan,
+)
 from tar_rl.report.stats import BASELINE, objective_key, table_levels
 from tar_rl.report.tables import fmt_pm
-from tar_rl.runs import WEIGHTS_COLUMNS
 
 __all__ = [
     "TABLE_I_COLUMNS",
@@ -72,7 +79,7 @@ def _cell(paired: pd.DataFrame, policy: str, objective: str, metric: str, level:
 
 
 def table_one_markdown(paired: pd.DataFrame, objective: str = "tar") -> str:
-    """The paper's Table I from a :func:`paired_table`: per policy, baseline, objective and their difference.
+    """The paper's Table I from a :func:`~tar_rl.report.paired_table`: per policy, baseline, objective, difference.
 
     Three rows per policy: the baseline and the objective (mean ± std over the paired seeds), then
     ``Δ`` (objective - baseline; mean and 95% CI over seeds) and a row of paired t-test p-values.
@@ -80,7 +87,7 @@ def table_one_markdown(paired: pd.DataFrame, objective: str = "tar") -> str:
     better). ``-``: no finite pair (e.g. NEPS with no success).
 
     Args:
-        paired: a :func:`paired_table`.
+        paired: a :func:`~tar_rl.report.paired_table`.
         objective: the treatment shown (default ``tar``).
 
     Returns:
@@ -121,8 +128,8 @@ def controls_markdown(paired: pd.DataFrame, table: pd.DataFrame, policy: str) ->
     """The paper's Table III for one policy: success per group and overall for every objective.
 
     Args:
-        paired: a :func:`paired_table` (differences to ``uniform``).
-        table: a :func:`compare` table of the same runs (means ± std over each objective's seeds).
+        paired: a :func:`~tar_rl.report.paired_table` (differences to ``uniform``).
+        table: a :func:`~tar_rl.report.compare` table of the same runs (means ± std over each objective's seeds).
         policy: the policy family shown.
 
     Returns:
@@ -160,7 +167,7 @@ def plot_radar(
     mean over policies.
 
     Args:
-        table: a :func:`compare` table holding ``uniform`` and ``objective`` rows.
+        table: a :func:`~tar_rl.report.compare` table holding ``uniform`` and ``objective`` rows.
         path: the PNG to write (atomically).
         objective: the treatment drawn against ``uniform``.
         caption: provenance text for the footer.
@@ -169,7 +176,7 @@ def plot_radar(
         ``path``.
 
     Raises:
-        ValueError: not a :func:`compare` table, or no policy with both objectives.
+        ValueError: not a :func:`~tar_rl.report.compare` table, or no policy with both objectives.
     """
     check_table(table, ["policy", "objective", "success_overall_mean", "fast20_overall_mean", "neps_overall_mean"])
     short = {"overall": "O", "easy": "E", "medium": "M", "hard": "H", "very_hard": "VH"}
@@ -231,7 +238,7 @@ def phase_weight_mass(weights_df: pd.DataFrame, step: int | None = None, **phase
     """Share of steps and of TAR weight mass in each phase, per recorded demonstration.
 
     Args:
-        weights_df: ``weights.csv`` rows (:data:`WEIGHTS_COLUMNS`), optionally with a ``run`` column
+        weights_df: ``weights.csv`` rows (:data:`tar_rl.runs.WEIGHTS_COLUMNS`), optionally with a ``run`` column
             (several runs' recordings concatenated).
         step: the training step of the recording (default: the largest, per run).
         **phase_kw: ``onset`` and ``completion`` of :func:`phase_labels`.
@@ -244,9 +251,7 @@ def phase_weight_mass(weights_df: pd.DataFrame, step: int | None = None, **phase
     Raises:
         ValueError: missing columns, no rows, or a recording with no positive weight.
     """
-    missing = [c for c in WEIGHTS_COLUMNS if c not in weights_df.columns]
-    if missing:
-        raise ValueError(f"weights table is missing the column(s) {missing}; expected {list(WEIGHTS_COLUMNS)}")
+    check_weights_table(weights_df)
     if len(weights_df) == 0:
         raise ValueError("weights table has no rows")
     df = weights_df if "run" in weights_df.columns else weights_df.assign(run="")
@@ -382,9 +387,7 @@ def plot_weight_phases(
     Raises:
         ValueError: no tasks, missing columns, or a task without a recording (the available ones are listed).
     """
-    missing = [c for c in WEIGHTS_COLUMNS if c not in weights_df.columns]
-    if missing:
-        raise ValueError(f"weights table is missing the column(s) {missing}; expected {list(WEIGHTS_COLUMNS)}")
+    check_weights_table(weights_df)
     if not tasks:
         raise ValueError("name at least one task to plot")
     step = int(weights_df["step"].max()) if step is None else step
@@ -527,7 +530,7 @@ def plot_group_deltas(
     (positive = the objective is faster), averaged over policies.
 
     Args:
-        paired: a :func:`paired_table`.
+        paired: a :func:`~tar_rl.report.paired_table`.
         path: the PNG to write (atomically).
         objective: the treatment shown.
         caption: provenance text for the footer.

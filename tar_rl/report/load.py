@@ -152,6 +152,69 @@ def _eval_settings(config: dict, rows: pd.DataFrame) -> dict:
     }
 
 
+def _read_config_and_summary(path: Path) -> tuple[dict, dict | None]:
+    """A run directory's config (``config.yaml``, else the summary's copy) and summary (``None`` before it ends)."""
+    if not path.is_dir():
+        raise ValueError(f"{path}: not a run directory (no such directory)")
+    config_path, summary_path = path / CONFIG_FILE, path / SUMMARY_FILE
+    if not _is_run_dir(path):
+        raise ValueError(f"{path}: not a run directory (no {CONFIG_FILE} or {SUMMARY_FILE} in it)")
+    summary = _read_summary(summary_path) if summary_path.is_file() else None
+    if config_path.is_file():
+        config = _read_yaml(config_path)
+    elif isinstance(summary.get("config"), dict):
+        config = summary["config"]
+    else:
+        raise ValueError(f"{path}: missing {CONFIG_FILE} (and {SUMMARY_FILE} holds no config)")
+    return config, summary
+
+
+def _identity(path: Path, config: dict, info: dict) -> tuple[str, str, int]:
+    """The run's objective, policy and seed: from its summary ``info``, else from its config."""
+    objective = info.get("objective") or _config_get(config, "objective.name")
+    policy = info.get("policy") or _config_get(config, "policy.name")
+    seed = info.get("seed", config.get("seed"))
+    for key, value in (("objective", objective), ("policy", policy), ("seed", seed)):
+        if value is None:
+            raise ValueError(f"{path}: the run's {key} is given neither in {SUMMARY_FILE} nor in {CONFIG_FILE}")
+    try:
+        seed = int(seed)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: the run's seed must be an integer, got {seed!r}") from None
+    return str(objective), str(policy), seed
+
+
+def _read_metrics(path: Path, finished: bool) -> pd.DataFrame:
+    """``metrics.csv``; an empty table for an unfinished run that has not written it yet."""
+    metrics_path = _run_file(path, METRICS_FILE)
+    if metrics_path.is_file():
+        return _read_csv(metrics_path, METRICS_COLUMNS)
+    if finished:
+        raise ValueError(f"{path}: missing {METRICS_FILE} (the run's summary says it finished)")
+    return pd.DataFrame({c: pd.Series(dtype=object) for c in METRICS_COLUMNS})
+
+
+def _read_final(path: Path, config: dict) -> tuple[pd.DataFrame | None, int | None, dict]:
+    """The final evaluation: its ``summarize`` table, its step and its settings (``None, None, {}`` without rows)."""
+    rollouts_path = _run_file(path, ROLLOUTS_FILE)
+    if not rollouts_path.is_file():
+        return None, None, {}
+    rollouts = _read_csv(rollouts_path, ROLLOUTS_COLUMNS)
+    if not len(rollouts):
+        return None, None, {}
+    try:
+        steps_col = pd.to_numeric(rollouts["step"], errors="raise")
+    except (TypeError, ValueError):
+        raise ValueError(f"{rollouts_path}: the column 'step' must hold integers") from None
+    final_step = int(steps_col.max())
+    rows = rollouts[steps_col == final_step]
+    try:
+        final = summarize(rows)
+    except ValueError as err:
+        raise ValueError(f"{rollouts_path}: bad evaluation rows at step {final_step}: {err}") from None
+    return final, final_step, _eval_settings(config, rows)
+
+
 def load_run(path: str | os.PathLike) -> Run:
     """Read one run directory.
 
@@ -172,64 +235,19 @@ def load_run(path: str | os.PathLike) -> Run:
             run without ``metrics.csv``. The message names the path and the file.
     """
     path = Path(path)
-    if not path.is_dir():
-        raise ValueError(f"{path}: not a run directory (no such directory)")
-    config_path, summary_path = path / CONFIG_FILE, path / SUMMARY_FILE
-    if not _is_run_dir(path):
-        raise ValueError(f"{path}: not a run directory (no {CONFIG_FILE} or {SUMMARY_FILE} in it)")
-    summary = _read_summary(summary_path) if summary_path.is_file() else None
-    if config_path.is_file():
-        config = _read_yaml(config_path)
-    elif isinstance(summary.get("config"), dict):
-        config = summary["config"]
-    else:
-        raise ValueError(f"{path}: missing {CONFIG_FILE} (and {SUMMARY_FILE} holds no config)")
-
-    notes: list[str] = []
+    config, summary = _read_config_and_summary(path)
     info = summary or {}
     name = str(info.get("run_name") or path.name)
-    objective = info.get("objective") or _config_get(config, "objective.name")
-    policy = info.get("policy") or _config_get(config, "policy.name")
-    seed = info.get("seed", config.get("seed"))
-    for key, value in (("objective", objective), ("policy", policy), ("seed", seed)):
-        if value is None:
-            raise ValueError(f"{path}: the run's {key} is given neither in {SUMMARY_FILE} nor in {CONFIG_FILE}")
-    try:
-        seed = int(seed)
-    except (TypeError, ValueError):
-        raise ValueError(f"{path}: the run's seed must be an integer, got {seed!r}") from None
+    objective, policy, seed = _identity(path, config, info)
 
+    notes: list[str] = []
     finished = summary is not None and summary["finished"]
     if summary is None:
         notes.append(f"unfinished: no {SUMMARY_FILE} yet (still training, or stopped)")
     elif not finished:
         notes.append(f"unfinished: {SUMMARY_FILE} says finished: false")
-
-    metrics_path = _run_file(path, METRICS_FILE)
-    if metrics_path.is_file():
-        metrics = _read_csv(metrics_path, METRICS_COLUMNS)
-    elif finished:
-        raise ValueError(f"{path}: missing {METRICS_FILE} (the run's summary says it finished)")
-    else:
-        metrics = pd.DataFrame({c: pd.Series(dtype=object) for c in METRICS_COLUMNS})
-
-    rollouts_path = _run_file(path, ROLLOUTS_FILE)
-    final = final_step = None
-    settings: dict = {}
-    if rollouts_path.is_file():
-        rollouts = _read_csv(rollouts_path, ROLLOUTS_COLUMNS)
-        if len(rollouts):
-            try:
-                steps_col = pd.to_numeric(rollouts["step"], errors="raise")
-            except (TypeError, ValueError):
-                raise ValueError(f"{rollouts_path}: the column 'step' must hold integers") from None
-            final_step = int(steps_col.max())
-            rows = rollouts[steps_col == final_step]
-            try:
-                final = summarize(rows)
-            except ValueError as err:
-                raise ValueError(f"{rollouts_path}: bad evaluation rows at step {final_step}: {err}") from None
-            settings = _eval_settings(config, rows)
+    metrics = _read_metrics(path, finished)
+    final, final_step, settings = _read_final(path, config)
     if final is None and finished:
         finished = False
         notes.append(f"unfinished: no final evaluation rows in {ROLLOUTS_FILE}")
@@ -248,8 +266,8 @@ def load_run(path: str | os.PathLike) -> Run:
     return Run(
         path=path,
         name=name,
-        objective=str(objective),
-        policy=str(policy),
+        objective=objective,
+        policy=policy,
         seed=seed,
         config=config,
         final=final,

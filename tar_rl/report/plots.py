@@ -29,6 +29,7 @@ from tar_rl.runs import WEIGHTS_COLUMNS
 
 __all__ = [
     "check_table",
+    "check_weights_table",
     "new_figure",
     "plot_group_bars",
     "plot_success_vs_neps",
@@ -78,6 +79,13 @@ def check_table(table: pd.DataFrame, columns: Sequence[str]) -> None:
         raise ValueError("the comparison table is empty: nothing to plot")
 
 
+def check_weights_table(weights_df: pd.DataFrame) -> None:
+    """Raise ``ValueError`` unless ``weights_df`` has the ``weights.csv`` columns (``tar_rl.runs.WEIGHTS_COLUMNS``)."""
+    missing = [c for c in WEIGHTS_COLUMNS if c not in weights_df.columns]
+    if missing:
+        raise ValueError(f"weights table is missing the column(s) {missing}; expected {list(WEIGHTS_COLUMNS)}")
+
+
 def zero_nan(value: float) -> float:
     return 0.0 if math.isnan(value) else value
 
@@ -91,7 +99,7 @@ def plot_success_vs_neps(table: pd.DataFrame, path: str | os.PathLike, caption: 
     cannot be placed and are named in the footer instead.
 
     Args:
-        table: a :func:`compare` table.
+        table: a :func:`~tar_rl.report.compare` table.
         path: the PNG to write (atomically).
         caption: provenance text for the footer (default: the table's run names and git commits).
 
@@ -99,7 +107,7 @@ def plot_success_vs_neps(table: pd.DataFrame, path: str | os.PathLike, caption: 
         ``path``.
 
     Raises:
-        ValueError: not a :func:`compare` table, or an empty one.
+        ValueError: not a :func:`~tar_rl.report.compare` table, or an empty one.
     """
     need = [
         "policy",
@@ -110,8 +118,6 @@ def plot_success_vs_neps(table: pd.DataFrame, path: str | os.PathLike, caption: 
         "neps_overall_std",
     ]
     check_table(table, need)
-    from matplotlib.lines import Line2D
-
     fig = new_figure(7.0, 5.2)
     fig.subplots_adjust(left=0.1, right=0.97, top=0.92, bottom=0.14)
     ax = fig.add_subplot()
@@ -119,6 +125,35 @@ def plot_success_vs_neps(table: pd.DataFrame, path: str | os.PathLike, caption: 
     policies = sorted(table["policy"].unique())
     colours = {o: f"C{i % 10}" for i, o in enumerate(objectives)}
     markers = dict(zip(policies, "osD^vP*X<>" * 4))
+    points, hidden = _draw_points(ax, table, colours, markers)
+    for (policy, objective), (x, y) in points.items():
+        start = points.get((policy, BASELINE))
+        if objective == BASELINE or start is None or start == (x, y):
+            continue
+        ax.annotate(
+            "",
+            xy=(x, y),
+            xytext=start,
+            arrowprops={"arrowstyle": "->", "color": colours[objective], "shrinkA": 6, "shrinkB": 6, "lw": 1.2},
+        )
+    ax.legend(handles=_point_legend(objectives, policies, colours, markers), loc="best", fontsize=8, frameon=True)
+    ax.set_xlabel("100 x NEPS (normalised steps per success; lower is better)")
+    ax.set_ylabel("success rate (%; higher is better)")
+    ax.set_title("Success vs deployment cost (mean over seeds; arrows: uniform -> objective)", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    footer = caption or provenance(table)
+    if hidden:
+        footer += f" | not shown (NEPS inf): {', '.join(hidden)}"
+    return save_png(fig, path, footer)
+
+
+def _draw_points(ax, table: pd.DataFrame, colours: dict, markers: dict) -> tuple[dict, list[str]]:
+    """One marker with error bars per row of a :func:`~tar_rl.report.compare` table at (NEPS, success).
+
+    Returns:
+        ``(policy, objective) -> (x, y)`` of the drawn points, and ``policy/objective`` of the rows
+        with a non-finite mean (not drawn).
+    """
     hidden, points = [], {}
     for rec in table.to_dict("records"):
         x, y = rec["neps_overall_mean"], rec["success_overall_mean"]
@@ -148,16 +183,13 @@ def plot_success_vs_neps(table: pd.DataFrame, path: str | os.PathLike, caption: 
             markeredgewidth=1.8,
             markerfacecolor="white" if rec["objective"] == BASELINE else colour,
         )
-    for (policy, objective), (x, y) in points.items():
-        start = points.get((policy, BASELINE))
-        if objective == BASELINE or start is None or start == (x, y):
-            continue
-        ax.annotate(
-            "",
-            xy=(x, y),
-            xytext=start,
-            arrowprops={"arrowstyle": "->", "color": colours[objective], "shrinkA": 6, "shrinkB": 6, "lw": 1.2},
-        )
+    return points, hidden
+
+
+def _point_legend(objectives: list[str], policies: list[str], colours: dict, markers: dict) -> list:
+    """Legend entries: a colour per objective (``uniform`` unfilled), and a marker per policy when there are several."""
+    from matplotlib.lines import Line2D
+
     handles = [
         Line2D(
             [],
@@ -175,32 +207,14 @@ def plot_success_vs_neps(table: pd.DataFrame, path: str | os.PathLike, caption: 
         handles += [
             Line2D([], [], linestyle="none", marker=markers[p], color="0.3", label=f"policy: {p}") for p in policies
         ]
-    ax.legend(handles=handles, loc="best", fontsize=8, frameon=True)
-    ax.set_xlabel("100 x NEPS (normalised steps per success; lower is better)")
-    ax.set_ylabel("success rate (%; higher is better)")
-    ax.set_title("Success vs deployment cost (mean over seeds; arrows: uniform -> objective)", fontsize=10)
-    ax.grid(True, alpha=0.3)
-    footer = caption or provenance(table)
-    if hidden:
-        footer += f" | not shown (NEPS inf): {', '.join(hidden)}"
-    return save_png(fig, path, footer)
+    return handles
 
 
 def plot_group_bars(table: pd.DataFrame, path: str | os.PathLike, caption: str | None = None) -> Path:
     """Success per difficulty group (and overall): bars per objective, one panel per policy.
 
-    Bar height is the mean over seeds, the error bar one standard deviation over seeds.
-
-    Args:
-        table: a :func:`compare` table.
-        path: the PNG to write (atomically).
-        caption: provenance text for the footer (default: the table's run names and git commits).
-
-    Returns:
-        ``path``.
-
-    Raises:
-        ValueError: not a :func:`compare` table, or an empty one.
+    Bar height is the mean over seeds, the error bar one standard deviation over seeds. Arguments,
+    return value and errors as :func:`plot_success_vs_neps`.
     """
     check_table(table, ["policy", "objective", "success_overall_mean"])
     levels = table_levels(table)
@@ -275,7 +289,7 @@ def plot_weights(
     turns closing (> 0 after a step <= 0) is marked.
 
     Args:
-        weights_df: a ``weights.csv`` table (columns :data:`WEIGHTS_COLUMNS`).
+        weights_df: a ``weights.csv`` table (columns :data:`tar_rl.runs.WEIGHTS_COLUMNS`).
         path: the PNG to write (atomically).
         task: the task (default: the first task in name order at ``step``).
         episode: the demonstration (default: the lowest episode of ``task`` at ``step``).
@@ -289,26 +303,10 @@ def plot_weights(
         ValueError: missing columns, no rows, or no rows for the requested step, task or episode
             (the message lists the available ones).
     """
-    missing = [c for c in WEIGHTS_COLUMNS if c not in weights_df.columns]
-    if missing:
-        raise ValueError(f"weights table is missing the column(s) {missing}; expected {list(WEIGHTS_COLUMNS)}")
+    check_weights_table(weights_df)
     if len(weights_df) == 0:
         raise ValueError("weights table has no rows")
-    df = weights_df
-    step = int(df["step"].max()) if step is None else step
-    df = df[df["step"] == step]
-    if not len(df):
-        raise ValueError(f"no weights recorded at step {step}; steps: {sorted(weights_df['step'].unique().tolist())}")
-    task = sorted(df["task"].unique())[0] if task is None else task
-    if task not in set(df["task"]):
-        raise ValueError(f"no weights for task {task!r} at step {step}; tasks: {sorted(df['task'].unique())}")
-    df = df[df["task"] == task]
-    episode = int(df["episode"].min()) if episode is None else episode
-    one = df[df["episode"] == episode].sort_values("t")
-    if not len(one):
-        raise ValueError(
-            f"no weights for episode {episode} of {task!r} at step {step}; episodes: {sorted(df['episode'].unique())}"
-        )
+    one, task, episode, step = _one_recording(weights_df, task, episode, step)
     t = one["t"].to_numpy()
     loss = one["loss"].to_numpy(dtype=float)
     weight = one["weight"].to_numpy(dtype=float)
@@ -348,3 +346,28 @@ def plot_weights(
     ax.set_title(f"{task}, episode {episode}, training step {step}", fontsize=10)
     ax.legend(handles=handles, loc="upper right", fontsize=8)
     return save_png(fig, path, caption or f"task {task}, episode {episode}, step {step}")
+
+
+def _one_recording(
+    weights_df: pd.DataFrame, task: str | None, episode: int | None, step: int | None
+) -> tuple[pd.DataFrame, str, int, int]:
+    """The rows of one recorded demonstration in time order, with the task, episode and step chosen.
+
+    Defaults: the largest step, the first task in name order, the lowest episode (see :func:`plot_weights`).
+    """
+    df = weights_df
+    step = int(df["step"].max()) if step is None else step
+    df = df[df["step"] == step]
+    if not len(df):
+        raise ValueError(f"no weights recorded at step {step}; steps: {sorted(weights_df['step'].unique().tolist())}")
+    task = sorted(df["task"].unique())[0] if task is None else task
+    if task not in set(df["task"]):
+        raise ValueError(f"no weights for task {task!r} at step {step}; tasks: {sorted(df['task'].unique())}")
+    df = df[df["task"] == task]
+    episode = int(df["episode"].min()) if episode is None else episode
+    one = df[df["episode"] == episode].sort_values("t")
+    if not len(one):
+        raise ValueError(
+            f"no weights for episode {episode} of {task!r} at step {step}; episodes: {sorted(df['episode'].unique())}"
+        )
+    return one, task, episode, step

@@ -151,7 +151,7 @@ def compare(runs: Sequence[Run], file: IO[str] | None = None) -> pd.DataFrame:
     ``n_pairs = 0`` for ``uniform`` itself and where no seed is shared).
 
     Args:
-        runs: loaded runs (:func:`load_run`).
+        runs: loaded runs (:func:`~tar_rl.report.load_run`).
         file: where to print the notes on unfinished runs.
 
     Returns:
