@@ -81,25 +81,25 @@ def _is_run_dir(path: Path) -> bool:
     return path.is_dir() and ((path / CONFIG_FILE).is_file() or (path / SUMMARY_FILE).is_file())
 
 
-def _read_yaml(path: Path) -> dict:
-    import yaml
-
+def _read_mapping(path: Path, parse, errors: tuple, what: str, kind: str) -> dict:
+    """``parse`` of the file's text, which must be a mapping; errors name the file, ``what`` it is and its ``kind``."""
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
-        raise ValueError(f"{path}: cannot read the run's config: {err}") from None
+        data = parse(path.read_text())
+    except (OSError, UnicodeDecodeError, *errors) as err:
+        raise ValueError(f"{path}: cannot read the {what}: {err}") from None
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: the run's config must be a YAML mapping, got {type(data).__name__}")
+        raise ValueError(f"{path}: the {what} must be a {kind}, got {type(data).__name__}")
     return data
 
 
+def _read_yaml(path: Path) -> dict:
+    import yaml
+
+    return _read_mapping(path, yaml.safe_load, (yaml.YAMLError,), "run's config", "YAML mapping")
+
+
 def _read_summary(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: cannot read the run summary: {err}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: the run summary must be a JSON object, got {type(data).__name__}")
+    data = _read_mapping(path, json.loads, (json.JSONDecodeError,), "run summary", "JSON object")
     if not isinstance(data.get("finished"), bool):
         raise ValueError(f"{path}: the run summary has no boolean 'finished' entry")
     return data
