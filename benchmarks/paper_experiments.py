@@ -63,6 +63,8 @@ from pathlib import Path
 
 import pandas as pd
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_analysis.py beside this script
+
 COMMANDS = ("protocol", "table", "controls", "critical_windows", "budget", "sensitivity", "all")
 BASELINE, TREATMENT = "uniform", "tar"
 # The paper's five families (ACT, Octo linear, Octo diffusion, a flow head, and the MLP reference).
@@ -491,15 +493,10 @@ def _missing_note(missing: Sequence[str]) -> str:
 
 def report_table(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, Path]:
     """Table I (markdown + CSV), the paired statistics, Fig. 3 and Fig. 4 from the protocol runs."""
+    from paper_analysis import plot_group_deltas, plot_radar, table_one_markdown
+
     from tar_rl.io import write_csv_atomic
-    from tar_rl.report import (
-        compare,
-        paired_table,
-        plot_group_deltas,
-        plot_radar,
-        plot_success_vs_neps,
-        table_one_markdown,
-    )
+    from tar_rl.report import compare, paired_table, plot_success_vs_neps
 
     runs, missing = _load(specs)
     if not runs:
@@ -540,8 +537,10 @@ def report_table(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, P
 
 def report_controls(specs: Sequence[Spec], folder: Path, prov: dict, family: str) -> dict[str, Path]:
     """Table III for one family: every weighting, success per group, paired difference to uniform."""
+    from paper_analysis import controls_markdown
+
     from tar_rl.io import write_csv_atomic
-    from tar_rl.report import compare, controls_markdown, paired_table
+    from tar_rl.report import compare, paired_table
 
     runs, missing = _load(specs)
     if not runs:
@@ -569,14 +568,10 @@ def report_controls(specs: Sequence[Spec], folder: Path, prov: dict, family: str
 
 def report_critical_windows(specs: Sequence[Spec], folder: Path, prov: dict, tasks: Sequence[str]) -> dict[str, Path]:
     """Phase shares of TAR weight mass per task (table, figure) and Fig. 5, from the TAR runs' weights.csv."""
+    from paper_analysis import critical_windows, phase_weight_mass, plot_critical_windows, plot_weight_phases
+
     from tar_rl.io import write_csv_atomic
-    from tar_rl.report import (
-        PHASES,
-        critical_windows,
-        phase_weight_mass,
-        plot_critical_windows,
-        plot_weight_phases,
-    )
+    from tar_rl.report import PHASES
 
     runs, missing = _load([s for s in specs if s.config["objective"]["name"] == TREATMENT])
     runs = [r for r in runs if r.weights is not None]
@@ -633,8 +628,10 @@ def report_critical_windows(specs: Sequence[Spec], folder: Path, prov: dict, tas
 
 def report_budget(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, Path]:
     """Success vs demonstrations per task for uniform and TAR (mean ± std over seeds, paired difference)."""
+    from paper_analysis import plot_lines
+
     from tar_rl.io import write_csv_atomic
-    from tar_rl.report import paired_t, plot_lines, run_percent
+    from tar_rl.report import paired_t, run_percent
 
     runs, missing = _load(specs)
     if not runs:
@@ -701,8 +698,10 @@ def report_budget(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, 
 
 def report_sensitivity(specs: Sequence[Spec], folder: Path, prov: dict, eval_seed: int) -> dict[str, Path]:
     """The gamma x w_max x cap grid: overall success and the paired difference to uniform per cell."""
+    from paper_analysis import plot_heatmaps
+
     from tar_rl.io import write_csv_atomic
-    from tar_rl.report import paired_t, plot_heatmaps, run_percent
+    from tar_rl.report import paired_t, run_percent
 
     runs, missing = _load(specs)
     if not runs:

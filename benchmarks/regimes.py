@@ -40,6 +40,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from tar_rl import runs
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_experiments.py beside this script
 from paper_experiments import EIGHT_TASKS, Planner, Scale, Spec, execute, provenance
 
@@ -56,8 +58,8 @@ SOURCE_TASKS = (
     "push-back,push,push-wall,reach-wall,shelf-place,soccer,stick-push,sweep-into,sweep,window-close,window-open"
 )
 SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
-# Files of a run kept in the repository beside config.yaml and summary.json, gzip-compressed.
-PACKED = ("eval_rollouts.csv", "metrics.csv", "weights.csv")
+# Files of a run kept in the repository beside its config and summary, gzip-compressed.
+PACKED = (runs.ROLLOUTS_FILE, runs.METRICS_FILE, runs.WEIGHTS_FILE)
 
 
 @dataclass(frozen=True)
@@ -258,7 +260,7 @@ def write_screening(study: Study, spec: Spec, out: Path) -> list[str]:
     from tar_rl.report import load_run
 
     run = load_run(spec.run_dir)
-    rollouts = pd.read_csv(_csv(spec.run_dir, "eval_rollouts.csv"))
+    rollouts = pd.read_csv(_csv(spec.run_dir, runs.ROLLOUTS_FILE))
     tasks = pick_hardest(rollouts[rollouts["step"] == rollouts["step"].max()], study.screen_keep)
     started = out / STARTED_FILE
     if started.is_file() and json.loads(started.read_text())["tasks"] != tasks:
@@ -320,21 +322,21 @@ def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[s
         summary = json.loads((run / "summary.json").read_text())
         if not summary.get("finished"):
             continue
-        name = run_name(yaml.safe_load((run / "config.yaml").read_text()))
+        name = run_name(yaml.safe_load((run / runs.CONFIG_FILE).read_text()))
         target = out / "runs" / name
         if (target / "summary.json").is_file():
             continue
         tmp = target.with_name(f".{name}.tmp")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        shutil.copy2(run / "config.yaml", tmp / "config.yaml")
-        write_json_atomic({**summary, "run_name": name}, tmp / "summary.json")
+        shutil.copy2(run / runs.CONFIG_FILE, tmp / runs.CONFIG_FILE)
+        write_json_atomic({**summary, "run_name": name}, tmp / runs.SUMMARY_FILE)
         for log in PACKED:
             if (run / log).is_file():
                 with open(run / log, "rb") as f_in, gzip.GzipFile(tmp / f"{log}.gz", "wb", mtime=0) as f_out:
                     shutil.copyfileobj(f_in, f_out)
         if name in keep_checkpoint:
-            shutil.copy2(run / "checkpoint.pt", tmp / "checkpoint.pt")
+            shutil.copy2(run / runs.CHECKPOINT, tmp / runs.CHECKPOINT)
         tmp.rename(target)
         copied.append(name)
     return copied

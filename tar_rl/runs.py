@@ -1,9 +1,14 @@
-"""Run directories: identity, logs, checkpoints and the printed results table.
+"""Run directories: layout, identity, logs, checkpoints and the printed results table.
 
-A run directory holds ``config.yaml``, ``checkpoint.pt``, ``metrics.csv``, ``eval_rollouts.csv``,
-``weights.csv`` and ``summary.json`` (see ``recipes/offline_bc.py`` for what writes them). A run is
-identified by the settings that change what it computes (:func:`identity`), which names its
-directory (:func:`run_name`) and decides whether a checkpoint may be resumed with a config.
+A run directory holds the files named below (:data:`CONFIG_FILE`, :data:`CHECKPOINT`,
+:data:`METRICS_FILE`, :data:`ROLLOUTS_FILE`, :data:`WEIGHTS_FILE`, :data:`SUMMARY_FILE`): the recipe
+(``recipes/offline_bc.py``, through :class:`RunLogs` and :func:`save_checkpoint`) writes them and
+``tar_rl.report`` reads them, both through these names. A run is identified by the settings that change
+what it computes (:func:`identity`), which names its directory (:func:`run_name`) and decides whether a
+checkpoint may be resumed with a config.
+
+torch is imported by the functions that need it, so that reading run directories (``tar-rl report``)
+does not import it.
 """
 
 from __future__ import annotations
@@ -18,16 +23,22 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 
 from tar_rl.io import save_torch_atomic, write_csv_atomic
-from tar_rl.metrics import as_percent
+from tar_rl.metrics import REQUIRED_COLUMNS, as_percent
 
 __all__ = [
     "CHECKPOINT",
     "CHECKPOINT_FORMAT",
+    "CONFIG_FILE",
+    "METRICS_COLUMNS",
+    "METRICS_FILE",
     "NOT_IDENTITY",
-    "WEIGHT_COLUMNS",
+    "ROLLOUTS_COLUMNS",
+    "ROLLOUTS_FILE",
+    "SUMMARY_FILE",
+    "WEIGHTS_COLUMNS",
+    "WEIGHTS_FILE",
     "RunLogs",
     "config_differences",
     "git_commit",
@@ -43,9 +54,25 @@ __all__ = [
     "summary_rows",
 ]
 
-WEIGHT_COLUMNS = ["step", "task", "episode", "t", "loss", "weight", "gripper"]
+# -- The run directory's files and their columns (written by the recipe, read by the report) ----------
+#: The resolved config (YAML), written when the run starts.
+CONFIG_FILE = "config.yaml"
+#: Model, optimiser and log state for resuming (:func:`save_checkpoint`).
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = 1
+#: Training and evaluation scalars, columns :data:`METRICS_COLUMNS`.
+METRICS_FILE = "metrics.csv"
+METRICS_COLUMNS: tuple[str, ...] = ("step", "phase", "name", "value")
+#: Every evaluation rollout: the evaluator's per-rollout columns and the training ``step``.
+ROLLOUTS_FILE = "eval_rollouts.csv"
+#: The columns every :data:`ROLLOUTS_FILE` has (the ones the metrics read, and ``step``); evaluators add others.
+ROLLOUTS_COLUMNS: tuple[str, ...] = (*REQUIRED_COLUMNS, "step")
+#: Per-step loss and weight along recorded demonstrations, columns :data:`WEIGHTS_COLUMNS`.
+WEIGHTS_FILE = "weights.csv"
+WEIGHTS_COLUMNS: tuple[str, ...] = ("step", "task", "episode", "t", "loss", "weight", "gripper")
+#: The final evaluation, timings and provenance, written last (``"finished": true``).
+SUMMARY_FILE = "summary.json"
+
 # Settings that do not change what a run computes: left out of the run's identity (its directory
 # name and the check made when resuming).
 NOT_IDENTITY = (
@@ -151,8 +178,8 @@ def print_table(table: pd.DataFrame, file=None) -> None:
 class RunLogs:
     """Everything a run logs, kept in memory (and in the checkpoint) and written out atomically.
 
-    Files (in ``run_dir``): ``metrics.csv`` (step, phase, name, value), ``eval_rollouts.csv`` (the
-    evaluator's columns and step), ``weights.csv`` (:data:`WEIGHT_COLUMNS`).
+    Files (in ``run_dir``): :data:`METRICS_FILE` (:data:`METRICS_COLUMNS`), :data:`ROLLOUTS_FILE` (the
+    evaluator's columns and step), :data:`WEIGHTS_FILE` (:data:`WEIGHTS_COLUMNS`).
     """
 
     def __init__(self, run_dir: Path, metrics=None, rollouts=None, weights=None):
@@ -165,13 +192,11 @@ class RunLogs:
         return {"metrics": self.metrics, "rollouts": self.rollouts, "weights": self.weights}
 
     def write(self) -> None:
-        write_csv_atomic(
-            pd.DataFrame(self.metrics, columns=["step", "phase", "name", "value"]), self.run_dir / "metrics.csv"
-        )
+        write_csv_atomic(pd.DataFrame(self.metrics, columns=list(METRICS_COLUMNS)), self.run_dir / METRICS_FILE)
         if self.rollouts:
-            write_csv_atomic(pd.DataFrame(self.rollouts), self.run_dir / "eval_rollouts.csv")
+            write_csv_atomic(pd.DataFrame(self.rollouts), self.run_dir / ROLLOUTS_FILE)
         if self.weights:
-            write_csv_atomic(pd.DataFrame(self.weights, columns=WEIGHT_COLUMNS), self.run_dir / "weights.csv")
+            write_csv_atomic(pd.DataFrame(self.weights, columns=list(WEIGHTS_COLUMNS)), self.run_dir / WEIGHTS_FILE)
 
 
 def rollout_records(step: int, df: pd.DataFrame) -> list[dict]:
@@ -194,6 +219,8 @@ def load_checkpoint(path: str | Path) -> dict:
         path = path / CHECKPOINT
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
+    import torch
+
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
@@ -236,6 +263,8 @@ def machine() -> dict:
     import os
     import platform
     import socket
+
+    import torch
 
     return {
         "hostname": socket.gethostname(),

@@ -22,16 +22,13 @@ import pytest
 import yaml
 from test_report import ROLLOUTS, write_run
 
-from tar_rl.report import (
-    PHASES,
-    compare,
+from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
+from tar_rl.runs import config_differences
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))  # paper_analysis.py
+from paper_analysis import (
     controls_markdown,
     critical_windows,
-    expand_run_dirs,
-    load_run,
-    paired_t,
-    paired_table,
-    phase_labels,
     phase_weight_mass,
     plot_critical_windows,
     plot_group_deltas,
@@ -41,7 +38,6 @@ from tar_rl.report import (
     plot_weight_phases,
     table_one_markdown,
 )
-from tar_rl.runs import config_differences
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "paper_experiments.py"
