@@ -315,6 +315,7 @@ def validate(config: dict) -> dict:
     for key in ("start", "ramp"):
         if not 0 <= obj[key] <= 1:
             raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
+    _check_objective_numbers(obj)
     _check_choice("data.suite", data["suite"], list(SUITES))
     given = _given_dataset(data["path"]) if data["path"] else None
     suite_name = given.source if given is not None else data["suite"]  # a given dataset brings its own
@@ -345,6 +346,9 @@ def validate(config: dict) -> dict:
     if data["image_size"] and suite is not None and not suite.images:
         raise ConfigError(f"data.image_size={data['image_size']}: the {suite_name} suite has no image observations")
     for name, value, low in (
+        ("seed", config["seed"], 0),
+        ("data.seed", data["seed"], 0),
+        ("eval.seed", ev["seed"], 0),
         ("data.n_demos", data["n_demos"], 1),
         ("data.slice_len", data["slice_len"], 1),
         ("data.batch_segments", data["batch_segments"], 1),
@@ -407,6 +411,27 @@ def validate(config: dict) -> dict:
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
     return {"train": train_tasks, "eval": eval_tasks, "suite": suite_name}
+
+
+def _check_objective_numbers(obj: dict) -> None:
+    """TAR's hyper-parameters (``tar_rl.objectives.TARParams`` checks the same), named as settings."""
+    if not (math.isfinite(obj["gamma"]) and obj["gamma"] > 0):
+        raise ConfigError(
+            f"objective.gamma is a softmax temperature and must be a finite number > 0, got {obj['gamma']}"
+        )
+    if not obj["w_max"] > 0:
+        raise ConfigError(f"objective.w_max is a weight cap and must be > 0 (inf: no cap), got {obj['w_max']}")
+    if obj["cap"] == "exact" and obj["w_max"] < 1:
+        raise ConfigError(
+            f"objective.cap=exact needs objective.w_max >= 1 (weights of mean 1 cannot all lie below 1), "
+            f"got {obj['w_max']}"
+        )
+    if not (math.isfinite(obj["eps"]) and obj["eps"] > 0):
+        raise ConfigError(f"objective.eps must be a finite number > 0, got {obj['eps']}")
+    if not 0 <= obj["perturb_fraction"] <= 1:
+        raise ConfigError(f"objective.perturb_fraction must lie in [0, 1], got {obj['perturb_fraction']}")
+    if not (math.isfinite(obj["perturb_scale"]) and obj["perturb_scale"] >= 0):
+        raise ConfigError(f"objective.perturb_scale must be a finite number >= 0, got {obj['perturb_scale']}")
 
 
 def _device(name: str, local_rank: int = 0) -> torch.device:

@@ -137,7 +137,10 @@ def test_unknown_keys_and_options_are_refused_at_composition(override, error, na
         (["objective.cap=loose"], "objective.cap"),
         (["objective.compile=sometimes"], "objective.compile"),
         (["objective.start=1.5"], "objective.start"),
-        (["objective.w_max=0.5", "objective.cap=exact"], "w_max"),
+        (["objective.w_max=0.5", "objective.cap=exact"], "objective.w_max >= 1"),
+        (["objective.gamma=0"], "objective.gamma"),
+        (["objective.w_max=-1"], "objective.w_max"),
+        (["objective.eps=0"], "objective.eps"),
         (["optim.decay=step"], "optim.decay"),
         (["optim.ema=1.0"], "optim.ema"),
         (["optim.steps=0"], "optim.steps"),
@@ -151,6 +154,15 @@ def test_bad_values_are_refused_before_any_work(tmp_path, overrides, named):
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
         train(config)
     assert not (tmp_path / "data").exists()  # nothing was collected
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("override", ["seed=-1", "data.seed=-1", "eval.seed=-1"])
+def test_negative_seeds_are_refused_before_the_run_folder_exists(tmp_path, data_root, override):
+    setting = override.split("=")[0]
+    config = tiny(tmp_path, data_root, override)
+    with pytest.raises(ConfigError, match=rf"^{setting.replace('.', r'[.]')} must be an integer >= 0, got -1"):
+        train(config)
     assert not (tmp_path / "runs").exists()
 
 
