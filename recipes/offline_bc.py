@@ -745,6 +745,10 @@ class Trainer:
             )
         self.logs = RunLogs(run_dir)
         self.step, self.skipped, self.train_seconds = 0, 0, 0.0
+        # The logging window: this rank's running sums of the step scalars and the number of steps
+        # summed since the last metrics row (in the checkpoint, so that a resumed run logs the same means).
+        self.window_sums: dict[str, float] = {}
+        self.window_count = 0
         if resume is not None:
             self._restore(resume)
 
@@ -762,10 +766,27 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"])
         self.logs = RunLogs(self.run_dir, **state["logs"])
         self.step, self.skipped, self.train_seconds = state["step"], state["skipped"], state["train_seconds"]
+        self._restore_window(state.get("log_windows") or [])
         self._print(f"{self.run_dir}: resuming at step {self.step} of {self.steps}")
 
+    def _restore_window(self, windows: list[dict]) -> None:
+        """Each rank's logging window as saved; saved by another number of ranks, rank 0 takes their sum.
+
+        (Then the means of the next metrics row agree up to float rounding. Checkpoints that hold
+        no window start with an empty one.)
+        """
+        if len(windows) == self.dist.world:
+            mine = [windows[self.dist.rank]]
+        else:
+            mine = windows if self.dist.main else []
+        for window in mine:
+            for name, value in window["sums"].items():
+                self.window_sums[name] = self.window_sums.get(name, 0.0) + value
+            self.window_count += window["count"]
+
     def checkpoint(self, finished: bool = False) -> None:
-        """Write the whole training state (rank 0; every rank holds the same state)."""
+        """Write the whole training state (rank 0; every rank holds the same state but its logging window)."""
+        windows = self.dist.all_gather_object({"sums": dict(self.window_sums), "count": self.window_count})
         if not self.dist.main:
             return
         ema = self.ema
@@ -784,6 +805,7 @@ class Trainer:
                 "sampler_rng": self.generator.get_state(),
                 "torch_rng": torch.get_rng_state(),
                 "logs": self.logs.state(),
+                "log_windows": windows,
                 "skipped": self.skipped,
                 "train_seconds": self.train_seconds,
                 "world_size": self.dist.world,
@@ -867,25 +889,27 @@ class Trainer:
         if self.dist.main:
             self.logs.write()
         every, eval_every = self.log_cfg["every"], self.config["eval"]["every"]
-        sums, n_ok, tick = {}, 0, time.perf_counter()
+        tick = time.perf_counter()
         self.objective.train()
         bar = tqdm(total=self.steps, initial=self.step, desc="train", unit="step", disable=not self.progress)
         try:
             while self.step < self.steps:
                 scalars = self.train_step()
                 if scalars is not None:
-                    sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
-                    n_ok += 1
+                    sums = self.window_sums
+                    self.window_sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
+                    self.window_count += 1
                 bar.update(1)
                 done = self.step
                 if done % every == 0 or done == self.steps:
                     now = time.perf_counter()
                     self.train_seconds += now - tick
                     tick = now
+                    sums, n_ok = self.window_sums, self.window_count
                     self._log_train(done, sums, n_ok)
                     if n_ok:
                         bar.set_postfix(loss=f"{sums['loss_tar'] / n_ok:.4g}", alpha=f"{sums['tar_mix'] / n_ok:.2f}")
-                    sums, n_ok = {}, 0
+                    self.window_sums, self.window_count = {}, 0
                 if eval_every and done % eval_every == 0 and done != self.steps:
                     self.evaluate(done)
                     tick = time.perf_counter()

@@ -377,17 +377,39 @@ class _Crash(Exception):
     pass
 
 
+LOG_FILES = ("metrics.csv", "eval_rollouts.csv", "weights.csv")
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, data_root):
     tmp = tmp_path_factory.mktemp("whole")
-    # `random` draws from the objective's generator every step; EMA adds its own state.
-    config = tiny(tmp, data_root, "objective=random", "optim.ema=0.9", "logging.record_weights_at=[]")
-    return _final_state(train(config)), config
+    # `random` draws from the objective's generator every step; EMA adds its own state. Metrics rows
+    # every 4 steps and checkpoints every 10: the checkpoint of step 10 falls inside a logging window
+    # (steps 9..12), so a run resumed from it must carry the window's running sums over.
+    config = tiny(
+        tmp,
+        data_root,
+        "objective=random",
+        "optim.ema=0.9",
+        "logging.every=4",
+        "eval.every=20",
+        "logging.record_weights_at=[10,-1]",
+    )
+    run_dir = train(config)
+    return _final_state(run_dir), config, {name: (run_dir / name).read_bytes() for name in LOG_FILES}
 
 
-@pytest.mark.parametrize("crash_at", [17, 21])  # between checkpoints; right after the one at step 20
-def test_a_killed_run_resumes_to_the_same_final_weights(tmp_path, data_root, monkeypatch, uninterrupted, crash_at):
-    whole, whole_config = uninterrupted
+def _assert_same_log_files(logs: dict[str, bytes], run_dir: Path) -> None:
+    for name, expected in logs.items():
+        assert (run_dir / name).read_bytes() == expected, name
+
+
+# between checkpoints (and inside a logging window); right after the checkpoint of step 20
+@pytest.mark.parametrize("crash_at", [17, 21])
+def test_a_killed_run_resumes_to_the_same_weights_and_byte_identical_logs(
+    tmp_path, data_root, monkeypatch, uninterrupted, crash_at
+):
+    whole, whole_config, logs = uninterrupted
     config = {**whole_config, "runs_root": str(tmp_path / "runs")}
     calls = {"n": 0}
     original = SegmentSampler.sample
@@ -408,11 +430,12 @@ def test_a_killed_run_resumes_to_the_same_final_weights(tmp_path, data_root, mon
     train(config)
     _assert_same_training(whole, _final_state(run_dir))
     metrics = pd.read_csv(run_dir / "metrics.csv")
-    assert sorted(metrics[metrics.phase == "train"].step.unique()) == [5, 10, 15, 20, 25, 30]  # no step logged twice
+    assert sorted(metrics[metrics.phase == "train"].step.unique()) == [4, 8, 12, 16, 20, 24, 28, 30]  # none twice
+    _assert_same_log_files(logs, run_dir)
 
 
 def test_a_crash_while_writing_a_checkpoint_keeps_the_previous_one(tmp_path, data_root, monkeypatch, uninterrupted):
-    whole, whole_config = uninterrupted
+    whole, whole_config, logs = uninterrupted
     config = {**whole_config, "runs_root": str(tmp_path / "runs")}
     real_save = torch.save
     calls = {"n": 0}
@@ -433,6 +456,7 @@ def test_a_crash_while_writing_a_checkpoint_keeps_the_previous_one(tmp_path, dat
     monkeypatch.setattr(torch, "save", real_save)
     train(config)
     _assert_same_training(whole, _final_state(run_dir))
+    _assert_same_log_files(logs, run_dir)
 
 
 def _nan_after(monkeypatch, step: int) -> None:
