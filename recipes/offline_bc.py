@@ -493,6 +493,7 @@ def make_objective(config: dict, policy: Policy) -> TARLoss:
         seed=config["seed"],
         loss_key=policy.loss_key,
         compile_weights=obj["compile"],
+        nonfinite="propagate",  # a NaN/inf step loss reaches the trainer's optim.skip_nonfinite handling
     )
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)
@@ -668,6 +669,18 @@ def _prepare_run_dir(run_dir: Path) -> None:
         raise ConfigError(f"cannot write to the run directory {run_dir}: {err}") from None
 
 
+def _last_checkpoint(run_dir: Path) -> str:
+    """Where a stopped run resumes from, in words: the last checkpoint's step and file, or that there is none."""
+    path = run_dir / CHECKPOINT
+    try:
+        step = load_checkpoint(path)["step"]
+    except FileNotFoundError:
+        return f"no checkpoint was written yet in {run_dir}"
+    except ValueError:
+        return f"{path} cannot be read"
+    return f"the last good checkpoint (step {step}) is kept in {path}"
+
+
 def _check_resumable(run_dir: Path, config: dict) -> dict | None:
     """The checkpoint to resume from (None for a new run); refuses one made with other settings."""
     path = run_dir / CHECKPOINT
@@ -840,13 +853,11 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             self.scheduler.step()
             if self.skipped > self.opt_cfg["skip_nonfinite"]:
-                path = self.run_dir / CHECKPOINT
-                last = load_checkpoint(path)["step"] if path.exists() else None
-                kept = f"The last good checkpoint (step {last}) is kept in {path}." if last is not None else ""
+                allowed = self.opt_cfg["skip_nonfinite"]
                 raise TrainingError(
-                    f"non-finite loss or gradient at step {self.step} (loss={float(loss.detach())}); "
-                    f"{self.skipped} such step(s), optim.skip_nonfinite={self.opt_cfg['skip_nonfinite']}. "
-                    + (kept or "No checkpoint had been written yet.")
+                    f"non-finite loss or gradient at step {self.step} of {self.steps} (loss={float(loss.detach())}; "
+                    f"{self.skipped} such step(s), optim.skip_nonfinite={allowed}); {_last_checkpoint(self.run_dir)}: "
+                    "start a new run with a lower optim.lr, or allow skipped steps with optim.skip_nonfinite=N"
                 )
             return None
         self.optimizer.step()
@@ -1032,6 +1043,11 @@ def train(cfg: Any) -> Path:
             else:
                 print(f"\n{run_dir}: {trainer.steps} steps, final evaluation ({rollouts} rollouts per task):")
                 print_table(table)
+            if trainer.skipped:
+                print(
+                    f"{run_dir}: {trainer.skipped} of {trainer.steps} steps were skipped for a non-finite loss or "
+                    f"gradient (optim.skip_nonfinite={config['optim']['skip_nonfinite']})"
+                )
         del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()
         return run_dir

@@ -460,38 +460,48 @@ def test_a_crash_while_writing_a_checkpoint_keeps_the_previous_one(tmp_path, dat
 
 
 def _nan_after(monkeypatch, step: int) -> None:
-    real_forward = TARLoss.forward
+    """From training step ``step`` on, every per-step loss of the head is NaN (where a diverging run's NaN arises)."""
+    real = TARLoss._step_losses
 
-    def forward(self, tensordict):
-        out = real_forward(self, tensordict)
-        if int(out["schedule_step"]) + 1 >= step:
-            out["loss_tar"] = out["loss_tar"] * float("nan")
-        return out
+    def step_losses(self, out, key, tensordict):
+        losses = real(self, out, key, tensordict)
+        if self.training and int(self.schedule_step) + 1 >= step:
+            losses = losses * float("nan")
+        return losses
 
-    monkeypatch.setattr(TARLoss, "forward", forward)
+    monkeypatch.setattr(TARLoss, "_step_losses", step_losses)
 
 
-def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, data_root, monkeypatch):
-    config = tiny(tmp_path, data_root)
+@pytest.mark.parametrize("objective", ["tar", "uniform"])
+def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, data_root, monkeypatch, objective):
+    config = tiny(tmp_path, data_root, f"objective={objective}")
     _nan_after(monkeypatch, 15)
-    with pytest.raises(
-        TrainingError, match=r"non-finite loss or gradient at step 15.*last good checkpoint \(step 10\)"
-    ):
+    with pytest.raises(TrainingError) as info:
         train(config)
     (run_dir,) = list((tmp_path / "runs").iterdir())
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith("non-finite loss or gradient at step 15 of 30")
+    assert f"the last good checkpoint (step 10) is kept in {run_dir / CHECKPOINT}" in message
+    assert "optim.skip_nonfinite" in message
     state = load_checkpoint(run_dir)
     assert state["step"] == 10
     assert all(torch.isfinite(v).all() for v in state["policy"].values())
 
 
-def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch):
-    config = tiny(tmp_path, data_root, "optim.skip_nonfinite=100")
+@pytest.mark.parametrize("objective", ["tar", "uniform"])
+def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch, capsys, objective):
+    config = tiny(tmp_path, data_root, f"objective={objective}", "optim.skip_nonfinite=100")
     _nan_after(monkeypatch, 26)  # steps 26..30 are skipped
     run_dir = train(config)
     metrics = pd.read_csv(run_dir / "metrics.csv")
     skipped = metrics[(metrics.phase == "train") & (metrics.name == "skipped")].set_index("step").value
     assert skipped[25] == 0 and skipped[30] == 5
     assert json.loads((run_dir / "summary.json").read_text())["nonfinite_steps_skipped"] == 5
+    last_lines = capsys.readouterr().out.strip().splitlines()[-2:]
+    assert any("5 of 30 steps were skipped" in line and "optim.skip_nonfinite=100" in line for line in last_lines)
+    state = load_checkpoint(run_dir)
+    assert all(torch.isfinite(v).all() for v in state["policy"].values())
 
 
 def test_multirun_sweep_over_objectives_and_its_restart_skips_finished_runs(tmp_path, data_root):
