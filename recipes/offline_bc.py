@@ -27,6 +27,7 @@ that was stopped half way is restarted with the same command.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
@@ -48,10 +49,12 @@ from tar_rl.collectors import dmc, libero
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
 from tar_rl.data import DatasetError, DemoDataset, build_dataset, load_dataset
+from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
 from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
 from tar_rl.metrics import summarize
 from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, MixSchedule, TARLoss, window_weights
 from tar_rl.policies import POLICIES, DataInfo, Policy, build_policy
+from tar_rl.runlock import run_lock
 from tar_rl.runs import (
     CHECKPOINT,
     RunLogs,
@@ -88,12 +91,12 @@ __all__ = [
 ]
 
 
-class ConfigError(ValueError):
-    """A bad setting, reported before any work starts."""
+class ConfigError(TarRLError, ValueError):
+    """A bad setting (or a run folder that holds another run), reported before any work starts."""
 
 
-class TrainingError(RuntimeError):
-    """The training run cannot go on (e.g. a non-finite loss); the last good checkpoint is kept."""
+class TrainingError(TarRLError, RuntimeError):
+    """The training run cannot go on (a non-finite loss, a full disk); the last good checkpoint is kept."""
 
 
 # -- Config ------------------------------------------------------------------------------------
@@ -681,18 +684,61 @@ def _last_checkpoint(run_dir: Path) -> str:
     return f"the last good checkpoint (step {step}) is kept in {path}"
 
 
+def _interruption(run_dir: Path, trainer: Trainer | None) -> str:
+    """Where a run stopped by Ctrl-C stopped, and how to resume it."""
+    if trainer is None:
+        where = "before training started (while loading or collecting the dataset)"
+    elif trainer.step < trainer.steps:
+        where = f"at step {trainer.step} of {trainer.steps}"
+    else:
+        where = f"in the final evaluation (after step {trainer.steps})"
+    return f"interrupted {where}; {_last_checkpoint(run_dir)}: run the same command to resume"
+
+
 def _check_resumable(run_dir: Path, config: dict) -> dict | None:
-    """The checkpoint to resume from (None for a new run); refuses one made with other settings."""
+    """The checkpoint to resume from (None for a new run); refuses a folder whose run has other settings.
+
+    Before its first checkpoint a started run is known by its ``config.yaml``, which is compared the same way.
+    """
     path = run_dir / CHECKPOINT
     if not path.exists():
+        _check_same_run(run_dir, _started_config(run_dir), config)
         return None
-    state = load_checkpoint(path)
-    diff = config_differences(identity(state["config"]), identity(config))
+    try:
+        state = load_checkpoint(path)
+    except ValueError as err:
+        raise ConfigError(
+            f"{str(err).splitlines()[0]}; remove {path} to start the run again from step 0, or choose another run_dir"
+        ) from err
+    _check_same_run(run_dir, state["config"], config)
+    return state
+
+
+def _started_config(run_dir: Path) -> dict | None:
+    """The config a started run wrote into ``run_dir/config.yaml`` (None if there is none)."""
+    path = run_dir / "config.yaml"
+    if not path.exists():
+        return None
+    from omegaconf import OmegaConf
+
+    try:
+        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+        if not isinstance(saved, dict):
+            raise ValueError(f"it holds a {type(saved).__name__}, not a config")
+    except Exception as err:  # OmegaConf raises many kinds for a damaged YAML file
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise ConfigError(f"{path} cannot be read ({first}); remove it or choose another run_dir") from err
+    return saved
+
+
+def _check_same_run(run_dir: Path, saved: dict | None, config: dict) -> None:
+    if saved is None:
+        return
+    diff = config_differences(identity(saved), identity(config))
     if diff:
         raise ConfigError(
             f"{run_dir} holds a run with other settings ({'; '.join(diff)}); choose another run_dir or remove it"
         )
-    return state
 
 
 class Trainer:
@@ -1010,19 +1056,28 @@ def train(cfg: Any) -> Path:
     Args:
         cfg: a Hydra ``DictConfig``, a :class:`TrainConfig` or an equivalent dict.
 
+    The run directory is locked (``tar_rl.runlock``) by rank 0 from before anything is written into
+    it until the job ends, so a second job on it is refused while this one runs.
+
     Raises:
-        ConfigError: a bad setting, an unwritable run directory, or a run directory holding a
-            different run; raised before any data is collected or any step is taken.
-        TrainingError: non-finite losses beyond ``optim.skip_nonfinite``.
+        ConfigError: a bad setting, an unwritable run directory, a run directory holding a
+            different run, or an unreadable checkpoint; raised before any data is collected or any
+            step is taken.
+        RunFolderBusy: another process is running in the run directory.
+        TrainingError: non-finite losses beyond ``optim.skip_nonfinite``, or no space left on
+            the device (the last good checkpoint is named).
+        RunInterrupted: Ctrl-C during training (the step and the last checkpoint are named).
     """
     config = resolve_config(cfg)
     tasks = validate(config)
     dist = distributed.init(_device(config["device"]).type)
+    held = contextlib.ExitStack()
     try:
         _agree_across_ranks(config, dist)
         run_dir = Path(config["run_dir"] or Path(config["runs_root"]) / run_name(config))
         if dist.main:
             _prepare_run_dir(run_dir)
+            held.enter_context(run_lock(run_dir))
         dist.barrier()
         resume = _check_resumable(run_dir, config)
         if resume is not None and resume.get("finished") and (run_dir / "summary.json").exists():
@@ -1033,8 +1088,14 @@ def train(cfg: Any) -> Path:
             from omegaconf import OmegaConf
 
             atomic_write(run_dir / "config.yaml", lambda f: f.write(OmegaConf.to_yaml(OmegaConf.create(config))))
-        trainer = Trainer(config, tasks, run_dir, resume, dist)
-        table = trainer.run()
+        trainer = None
+        try:
+            trainer = Trainer(config, tasks, run_dir, resume, dist)
+            table = trainer.run()
+        except BaseException as err:
+            if not interrupted(err):
+                raise
+            raise RunInterrupted(_interruption(run_dir, trainer)) from err
         if dist.main:
             trainer.write_summary(table)
             rollouts = config["eval"]["rollouts"]
@@ -1051,7 +1112,12 @@ def train(cfg: Any) -> Path:
         del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()
         return run_dir
+    except DiskFullError as err:
+        raise TrainingError(
+            f"{err.what}; {_last_checkpoint(run_dir)}: free some space, then run the same command to resume"
+        ) from err
     finally:
+        held.close()
         distributed.shutdown(dist)
 
 
@@ -1069,12 +1135,20 @@ def hydra_main(argv: list[str] | None = None) -> int:
 
     @hydra.main(version_base="1.3", config_path=None, config_name=CONFIG_NAME)
     def _main(cfg) -> None:
+        # A user's error ends in one line (what, where, what to do); the traceback only in debug mode.
         try:
             train(cfg)
-        except ConfigError as err:
-            raise SystemExit(f"tar-rl train: {err}") from None
-        except TrainingError as err:
-            raise SystemExit(f"tar-rl train: {err}") from None
+        except TarRLError as err:
+            if debug_mode():
+                raise
+            raise SystemExit(one_line("tar-rl train", err)) from None
+        except BaseException as err:
+            if debug_mode() or not interrupted(err):
+                raise
+            if not isinstance(err, RunInterrupted):
+                err = RunInterrupted("interrupted; run the same command to start (or resume) the run")
+            print(one_line("tar-rl train", err), file=sys.stderr)
+            raise SystemExit(130) from None
 
     saved = sys.argv
     sys.argv = ["tar-rl train", *(sys.argv[2:] if argv is None else argv)]

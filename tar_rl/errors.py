@@ -7,8 +7,12 @@ traceback is printed only in debug mode (``tar-rl --debug ...`` or ``HYDRA_FULL_
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 __all__ = [
@@ -16,8 +20,10 @@ __all__ = [
     "DiskFullError",
     "RunInterrupted",
     "TarRLError",
+    "children_ignore_sigint",
     "debug_mode",
     "disk_full_cause",
+    "interrupted",
     "one_line",
 ]
 
@@ -43,14 +49,12 @@ class DiskFullError(TarRLError, OSError):
     def __init__(self, path: str | os.PathLike, cause: OSError):
         super().__init__(cause.errno, os.strerror(cause.errno), str(path))
         self.path = Path(path)
-        self.message = (
-            f"no space left on device while writing {self.path} "
-            f"({'disk quota exceeded' if cause.errno == errno.EDQUOT else 'disk full'}); "
-            f"the previous {self.path.name}, if any, is unchanged"
-        )
+        kind = "disk quota exceeded" if cause.errno == errno.EDQUOT else "disk full"
+        #: What happened and where, without the consequence (for callers that add their own).
+        self.what = f"no space left on device while writing {self.path} ({kind})"
 
     def __str__(self) -> str:
-        return self.message
+        return f"{self.what}; the previous {self.path.name}, if any, is unchanged"
 
     def __reduce__(self):  # picklable (errors cross process boundaries in the evaluator and Hydra launchers)
         return (_disk_full, (str(self.path), self.errno))
@@ -67,19 +71,32 @@ class RunInterrupted(KeyboardInterrupt):
     """
 
 
+def _chain(err: BaseException | None) -> Iterator[BaseException]:
+    """``err``, then the exception it was raised from or while handling, and so on."""
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        seen.add(id(err))
+        yield err
+        err = err.__cause__ or err.__context__
+
+
 def disk_full_cause(err: BaseException) -> OSError | None:
     """The ``OSError`` of a full disk behind ``err`` (``err`` itself, its cause or its context), or None.
 
     torch reports a failed write inside ``torch.save`` as a ``RuntimeError`` whose context is the
     ``OSError`` the file raised; this finds it there.
     """
-    seen: set[int] = set()
-    while err is not None and id(err) not in seen:
-        seen.add(id(err))
-        if isinstance(err, OSError) and err.errno in _NO_SPACE:
-            return err
-        err = err.__cause__ or err.__context__
-    return None
+    return next((e for e in _chain(err) if isinstance(e, OSError) and e.errno in _NO_SPACE), None)
+
+
+def interrupted(err: BaseException) -> bool:
+    """Whether ``err`` is, or was raised while handling, a ``KeyboardInterrupt`` (Ctrl-C).
+
+    Some libraries' clean-up code fails on the way out of an interrupted call (tensordict's
+    ``to_module`` context raises a ``RuntimeError`` when Ctrl-C lands inside it); the Ctrl-C is
+    then found in the context.
+    """
+    return any(isinstance(e, KeyboardInterrupt) for e in _chain(err))
 
 
 def debug_mode() -> bool:
@@ -91,3 +108,22 @@ def one_line(command: str, err: BaseException) -> str:
     """``"<command>: <message>"`` on one line (a multi-line message is joined with ``" | "``)."""
     text = " | ".join(line.strip() for line in str(err).splitlines() if line.strip())
     return f"{command}: {text or type(err).__name__}"
+
+
+@contextlib.contextmanager
+def children_ignore_sigint() -> Iterator[None]:
+    """Processes started inside the block ignore Ctrl-C (SIGINT): this process alone reports it and ends them.
+
+    A terminal's Ctrl-C reaches every process of the foreground group, and each worker process
+    would print its own traceback. A Python process that starts with SIGINT ignored keeps it
+    ignored. A Ctrl-C that arrives during the block itself is lost (the block only starts
+    processes). Outside the main thread, where signal handlers cannot be set, this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
