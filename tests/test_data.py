@@ -557,6 +557,23 @@ def test_bench_data_quick_writes_csv(tmp_path, monkeypatch):
     assert not list(tmp_path.glob(".*")), "no temporary file left beside the CSV"
 
 
+@pytest.mark.slow  # collects a tiny dataset and starts two `tar-rl train` processes: ~20 s
+def test_bench_data_startup_quick_writes_csv(tmp_path, monkeypatch):
+    import importlib
+    from pathlib import Path
+
+    import pandas as pd
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    bench = importlib.import_module("bench_data")
+    out = tmp_path / "startup.csv"
+    bench.main(["--quick", "--sections", "startup", "--root", str(tmp_path / "data"), "--out", str(out)])
+    df = pd.read_csv(out)
+    assert list(df.columns) == bench.COLUMNS
+    assert list(df.variant) == ["job_startup", "load_dataset", "check_content"]
+    assert (df["median"] > 0).all() and (df.baseline == "job_startup").all()
+
+
 def test_worker_init_sets_one_torch_thread():
     import multiprocessing
 
