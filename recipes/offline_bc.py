@@ -11,17 +11,19 @@ config). The loop::
 
 Run directory (``run_dir``, by default ``runs/<objective>-<policy>-s<seed>-<hash>``)::
 
-    config.yaml          the resolved config
-    checkpoint.pt        the whole training state (written atomically), see ``_checkpoint_state``
+    config.yaml          the resolved config (a later start with other settings is refused)
+    checkpoint.pt        the whole training state (written atomically), see ``Trainer.checkpoint``
     metrics.csv          tidy table: step, phase (train | eval), name, value
     eval_rollouts.csv    one row per evaluation rollout (the evaluator's columns + step)
     weights.csv          per-step loss and TAR weight along whole demonstrations (if recorded)
     summary.json         final metrics per difficulty group; "finished": true marks a finished run
+    .lock                flock-ed by the job running in the folder (``tar_rl.runlock``): one job at a time
 
 Resume: running the same command again continues from ``checkpoint.pt`` with the same data
 order (the sampler's generator state), the same schedule and control RNG (the objective's state),
-the same optimiser, LR schedule and EMA state, and the logs as they were at that step; it reaches
-the same final weights as an uninterrupted run. A finished run is reported and skipped, so a sweep
+the same optimiser, LR schedule and EMA state, the logs as they were at that step and each rank's
+logging window (the running sums since the last metrics row); it reaches the same final weights and
+writes the same log files, byte for byte, as an uninterrupted run. A finished run is reported and skipped, so a sweep
 that was stopped half way is restarted with the same command.
 """
 
