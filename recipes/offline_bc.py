@@ -23,8 +23,8 @@ Resume: running the same command again continues from ``checkpoint.pt`` with the
 order (the sampler's generator state), the same schedule and control RNG (the objective's state),
 the same optimiser, LR schedule and EMA state, the logs as they were at that step and each rank's
 logging window (the running sums since the last metrics row); it reaches the same final weights and
-writes the same log files, byte for byte, as an uninterrupted run. A finished run is reported and skipped, so a sweep
-that was stopped half way is restarted with the same command.
+writes the same log files, byte for byte, as an uninterrupted run. A finished run is reported and
+skipped, so a sweep that was stopped half way is restarted with the same command.
 """
 
 from __future__ import annotations
