@@ -352,7 +352,8 @@ def bench_startup(quick: bool, workers: int, reps: int, check_reps: int, root: s
     print(f"dataset {ds.path}: {len(ds)} steps, {size / 1e6:.1f} MB in {sum(1 for _ in ds.path.rglob('*'))} entries")
     with tempfile.TemporaryDirectory(prefix="bench_startup_") as cwd:
         overrides.append(f"runs_root={Path(cwd) / 'runs'}")
-        _job_startup(overrides, cwd)  # warm-up: the page cache, Python's bytecode cache
+        if not quick:
+            _job_startup(overrides, cwd)  # warm-up: the page cache, Python's bytecode cache
         startup = [_job_startup(overrides, cwd) * 1e3 for _ in range(reps)]
     variants = {"load_dataset": lambda: load_dataset(ds.path), "check_content": lambda: check_content(ds.path)}
     times = {k: [] for k in variants}
