@@ -3,6 +3,7 @@
 Run from the repository root::
 
     .venv/bin/python benchmarks/bench_data.py [--quick] [--tasks mt10] [--demos 10] [--workers N] [--out PATH]
+    .venv/bin/python benchmarks/bench_data.py --sections startup [--root DIR] --out benchmarks/results/startup.csv
 
 Sections:
 
@@ -19,10 +20,21 @@ Sections:
   a 3 x 256 ReLU MLP (observation + one-hot task -> action) with ``TARLoss(BCLoss)`` on a fixed
   batch. Round-robin, medians.
 
+* ``startup`` (not run by default): the cost of checking a dataset's content on load beside the
+  default job's start-up. ``job_startup``: a fresh ``tar-rl train`` process with the default
+  config (``tar-rl train`` with no arguments, ``data.root`` the benchmark's, the dataset already
+  collected) timed from its launch to the start of its training loop: interpreter, imports,
+  Hydra, validation, the run folder, the dataset load with its content check, the policy, the
+  objective and the optimiser. ``load_dataset`` (the whole load, check included) and
+  ``check_content`` (the SHA-256 of every file of the folder against ``digest.json``) in this
+  process, on the same dataset, its files in the page cache as in the job. ``--tasks``/``--demos``
+  are not used: the dataset is the default job's (``--quick``: two tasks x two demonstrations).
+
 Output: a table on stdout and one tidy CSV (default ``benchmarks/results/data.csv``, written to a
 temporary file and renamed into place) with columns ``section, variant, median, iqr, unit,
 ratio_to_baseline, baseline, n, workers, tasks, torch, commit``. Targets from the issue:
-collection throughput >= 0.85 of the bare rollout rate; a segment batch <= 5% of a train step.
+collection throughput >= 0.85 of the bare rollout rate; a segment batch <= 5% of a train step; the
+content check <= 2% of the job's start-up.
 """
 
 from __future__ import annotations
@@ -31,6 +43,7 @@ import argparse
 import multiprocessing
 import os
 import random
+import subprocess
 import sys
 import tempfile
 import time
@@ -283,6 +296,96 @@ def bench_segments(names, n_demos, seed, workers, reps, root) -> list[dict]:
     return rows
 
 
+# A `tar-rl train` process that stops where its training loop would start (after building everything).
+_STARTUP = """
+import os, sys
+from tar_rl.recipes import offline_bc
+
+def run(self):
+    print("ready", flush=True)
+    os._exit(0)
+
+offline_bc.Trainer.run = run
+from tar_rl.cli import main
+main(["train", *sys.argv[1:]])
+"""
+
+
+def _job_startup(overrides: list[str], cwd: str) -> float:
+    """Seconds from launching ``tar-rl train OVERRIDES`` to the start of its training loop."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _STARTUP, *overrides], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    for line in proc.stdout:
+        if line.strip() == "ready":
+            break
+    seconds = time.perf_counter() - t0
+    _, err = proc.communicate(timeout=120)
+    if proc.returncode != 0:
+        raise RuntimeError(f"the job did not start (exit {proc.returncode}): {err.strip()[-2000:]}")
+    return seconds
+
+
+def bench_startup(quick: bool, workers: int, reps: int, check_reps: int, root: str) -> list[dict]:
+    from tar_rl.data import build_dataset, check_content, load_dataset
+    from tar_rl.recipes.config import DataConfig
+
+    data = DataConfig()
+    overrides = [f"data.root={root}", "logging.progress=false"]
+    tasks, n_demos = list(data.tasks), data.n_demos
+    if quick:
+        tasks, n_demos = ["reach", "button-press-topdown"], 2
+        overrides += [f"data.tasks=[{','.join(tasks)}]", f"data.n_demos={n_demos}"]
+    ds = build_dataset(
+        root,
+        tasks,
+        n_demos,
+        seed=data.seed,
+        chunk_horizon=data.chunk_horizon,
+        history=data.history,
+        workers=workers,
+        progress=False,
+        verbose=False,
+    )
+    size = sum(p.stat().st_size for p in ds.path.rglob("*") if p.is_file())
+    print(f"dataset {ds.path}: {len(ds)} steps, {size / 1e6:.1f} MB in {sum(1 for _ in ds.path.rglob('*'))} entries")
+    with tempfile.TemporaryDirectory(prefix="bench_startup_") as cwd:
+        overrides.append(f"runs_root={Path(cwd) / 'runs'}")
+        if not quick:
+            _job_startup(overrides, cwd)  # warm-up: the page cache, Python's bytecode cache
+        startup = [_job_startup(overrides, cwd) * 1e3 for _ in range(reps)]
+    variants = {"load_dataset": lambda: load_dataset(ds.path), "check_content": lambda: check_content(ds.path)}
+    times = {k: [] for k in variants}
+    rng = random.Random(0)
+    for _ in range(check_reps):
+        order = list(variants)
+        rng.shuffle(order)
+        for k in order:
+            t0 = time.perf_counter()
+            variants[k]()
+            times[k].append((time.perf_counter() - t0) * 1e3)
+    base, _ = median_iqr(startup)
+    rows = []
+    for k, ts in {"job_startup": startup, **times}.items():
+        med, iqr = median_iqr(ts)
+        rows.append(
+            {
+                "section": "startup",
+                "variant": k,
+                "median": med,
+                "iqr": iqr,
+                "unit": "ms",
+                "ratio_to_baseline": med / base,
+                "baseline": "job_startup",
+                "n": len(ts),
+                "workers": 1,
+                "tasks": ",".join(tasks) if quick else "default job",
+            }
+        )
+    return rows
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", default="mt10")
@@ -292,10 +395,15 @@ def main(argv=None) -> None:
     parser.add_argument("--reps", type=int, default=3, help="repetitions of collect_per_step")
     parser.add_argument("--e2e-reps", type=int, default=2, help="repetitions of collect_end_to_end (alternating)")
     parser.add_argument("--sample-reps", type=int, default=200, help="repetitions of the segments section")
+    parser.add_argument("--startup-reps", type=int, default=5, help="job start-ups timed in the startup section")
+    parser.add_argument("--check-reps", type=int, default=50, help="loads and content checks timed in startup")
+    parser.add_argument(
+        "--root", help="dataset cache of the startup section (default: a temporary folder, collected anew)"
+    )
     parser.add_argument(
         "--sections",
         default="collect_per_step,collect_end_to_end,segments",
-        help="comma-separated sections to run (default: all three)",
+        help="comma-separated sections to run (default: the first three; startup runs only when named)",
     )
     parser.add_argument("--quick", action="store_true", help="2 tasks x 2 demos, few repetitions (smoke test)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -311,10 +419,11 @@ def main(argv=None) -> None:
     warnings.filterwarnings("ignore", message="The name target_actor_network_params")  # torchrl's BCLoss
     if args.quick:
         args.tasks, args.demos, args.reps, args.e2e_reps, args.sample_reps = "reach,button-press-topdown", 2, 1, 1, 20
+        args.startup_reps, args.check_reps = 1, 3
     names = tasks.resolve_tasks(args.tasks)
 
     sections = args.sections.split(",")
-    known = ("collect_per_step", "collect_end_to_end", "segments")
+    known = ("collect_per_step", "collect_end_to_end", "segments", "startup")
     if not sections or any(sec not in known for sec in sections):
         raise ValueError(f"--sections must name some of {', '.join(known)}, got {args.sections!r}")
     rows = []
@@ -325,8 +434,12 @@ def main(argv=None) -> None:
     if "segments" in sections:
         with tempfile.TemporaryDirectory(prefix="bench_data_") as root:
             rows += bench_segments(names, args.demos, args.seed, args.workers, args.sample_reps, root)
+    if "startup" in sections:
+        with tempfile.TemporaryDirectory(prefix="bench_data_") as scratch:
+            root = args.root or scratch
+            rows += bench_startup(args.quick, args.workers, args.startup_reps, args.check_reps, root)
     df = pd.DataFrame(rows)
-    df["tasks"] = args.tasks
+    df["tasks"] = df["tasks"].fillna(args.tasks) if "tasks" in df else args.tasks
     df["torch"] = torch.__version__
     df["commit"] = git_commit()
     df = df[COLUMNS]

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tar_rl.collectors import tasks as _tasks
+from tar_rl.errors import children_ignore_sigint
 
 __all__ = ["ACTION_DIM", "HORIZON", "OBS_DIM", "TaskDemos", "collect", "collect_task", "default_max_attempts"]
 
@@ -349,7 +350,9 @@ def collect(
                 bar.update(1)
         else:
             ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(workers, initializer=_worker_init) as pool:
+            with children_ignore_sigint():  # Ctrl-C is reported here; leaving the block terminates the pool
+                pool = ctx.Pool(workers, initializer=_worker_init)
+            with pool:
                 for out in pool.imap_unordered(_job, jobs):
                     results[out.task] = out
                     bar.update(1)

@@ -47,6 +47,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors import tasks
 from tar_rl.collectors.envs import make_batched_env
+from tar_rl.errors import children_ignore_sigint
 from tar_rl.io import write_csv_atomic
 
 __all__ = [
@@ -230,12 +231,13 @@ def evaluate(
             while not queue.empty():  # progress left over from an interrupted call
                 queue.get()
             try:
-                futures = [
-                    pool.submit(
-                        _worker, policy, shard, seed, horizon, batch, _known_variations(shard, seed), image_size
-                    )
-                    for shard in shards
-                ]
+                with children_ignore_sigint():  # the pool starts its workers on submit
+                    futures = [
+                        pool.submit(
+                            _worker, policy, shard, seed, horizon, batch, _known_variations(shard, seed), image_size
+                        )
+                        for shard in shards
+                    ]
                 pending = set(futures)
                 while pending:
                     pending = {f for f in pending if not f.done()}
@@ -249,8 +251,10 @@ def evaluate(
                     tasks.add_variations(built)  # the next evaluation's workers get them
                 bar.update(len(jobs) - bar.n)  # counts still in the queue's pipe are drained next call
             except BaseException as err:
-                if not isinstance(err, Exception) or isinstance(err, BrokenProcessPool):
-                    close_workers()  # interrupted, or a worker died: start afresh next time
+                if not isinstance(err, Exception):
+                    close_workers(terminate=True)  # interrupted: the running shards are not waited for
+                elif isinstance(err, BrokenProcessPool):
+                    close_workers()  # a worker died: start afresh next time
                 raise
             finally:
                 if not keep_workers:
@@ -295,11 +299,18 @@ def _worker_pool(n: int):
     return _POOL["executor"], _POOL["queue"]
 
 
-def close_workers() -> None:
-    """End the evaluation worker processes kept by ``evaluate(..., keep_workers=True)``."""
+def close_workers(terminate: bool = False) -> None:
+    """End the evaluation worker processes kept by ``evaluate(..., keep_workers=True)``.
+
+    ``terminate=True`` stops them at once instead of letting running rollouts finish (after Ctrl-C,
+    which the workers ignore: see ``tar_rl.errors.children_ignore_sigint``).
+    """
     executor, queue = _POOL.get("executor"), _POOL.get("queue")
     _POOL.clear()
     if executor is not None:
+        if terminate:
+            for process in list((getattr(executor, "_processes", None) or {}).values()):
+                process.terminate()
         executor.shutdown(wait=True, cancel_futures=True)
     if queue is not None:
         queue.close()

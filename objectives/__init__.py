@@ -4,7 +4,7 @@ Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.t
 """
 
 from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
-from .tar_loss import COMPILE_MODES, TARLoss, compiles_weights, segment_mean
+from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
 from .weighting import (
     CAP_MODES,
     DEFAULT_EPS,
@@ -30,6 +30,7 @@ __all__ = [
     "DEFAULT_EPS",
     "DEFAULT_GAMMA",
     "DEFAULT_W_MAX",
+    "NONFINITE_MODES",
     "SCHEDULE_SHAPES",
     "WEIGHTINGS",
     "MixSchedule",

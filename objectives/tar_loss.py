@@ -29,8 +29,10 @@ from .weighting import (
     perturb_mask,
 )
 
-__all__ = ["COMPILE_MODES", "TARLoss", "compiles_weights", "segment_mean"]
+__all__ = ["COMPILE_MODES", "NONFINITE_MODES", "TARLoss", "compiles_weights", "segment_mean"]
 
+#: ``nonfinite`` of :class:`TARLoss`: what a NaN/inf per-step loss does (raise, or make ``loss_tar`` non-finite).
+NONFINITE_MODES = ("raise", "propagate")
 #: ``compile_weights`` of :class:`TARLoss`: ``auto`` (on CUDA, when triton is installed), ``always``, ``never``.
 COMPILE_MODES = ("auto", "always", "never")
 
@@ -106,6 +108,11 @@ class TARLoss(LossModule):
             launches cost about 0.5 ms a step; compiled, they fuse into a few. The compiled
             weights equal the eager ones up to float rounding. Uniform and the stochastic
             controls always run eagerly (nothing to fuse; random generators).
+        nonfinite (str): what a NaN or infinite per-step loss at a valid step does: ``"raise"``
+            (default) a ``ValueError`` from the weighting; ``"propagate"`` makes ``loss_tar``
+            non-finite (the weights are computed as if that loss were 0; it still enters Eq. 2),
+            so that a training loop's own non-finite handling sees it after ``backward``, on
+            every rank of a distributed job.
 
     Input: a TensorDict of batch shape ``[B, L]`` (segments x steps), holding what the inner
     loss reads and the validity mask at ``tensor_keys.valid`` (``True`` on real steps,
@@ -175,6 +182,7 @@ class TARLoss(LossModule):
         return_weights: bool = False,
         auto_step: bool = True,
         compile_weights: str = "auto",
+        nonfinite: str = "raise",
     ) -> None:
         if not isinstance(inner, LossModule):
             raise TypeError(f"inner must be a torchrl LossModule, got {type(inner).__name__}.")
@@ -190,6 +198,8 @@ class TARLoss(LossModule):
             raise ValueError(f"perturb_scale must be a finite number >= 0, got {perturb_scale!r}.")
         if compile_weights not in COMPILE_MODES:
             raise ValueError(f"compile_weights must be one of {list(COMPILE_MODES)}, got {compile_weights!r}.")
+        if nonfinite not in NONFINITE_MODES:
+            raise ValueError(f"nonfinite must be one of {list(NONFINITE_MODES)}, got {nonfinite!r}.")
         schedule = MixSchedule() if schedule is None else schedule
         if not isinstance(schedule, MixSchedule):
             raise TypeError(f"schedule must be a MixSchedule, got {type(schedule).__name__}.")
@@ -204,6 +214,7 @@ class TARLoss(LossModule):
         self.return_weights = return_weights
         self.auto_step = auto_step
         self.compile_weights = compile_weights
+        self.nonfinite = nonfinite
         self.register_buffer("schedule_step", torch.zeros((), dtype=torch.long))
         self._generator = torch.Generator().manual_seed(seed)
         inner_keys = getattr(inner, "tensor_keys", None)
@@ -262,7 +273,7 @@ class TARLoss(LossModule):
         if spec.perturb is not None:
             with torch.no_grad():
                 clean_out = self.inner(tensordict)
-                clean = self._step_losses(clean_out, self._loss_entry(clean_out), tensordict)
+                clean = self._scored(self._step_losses(clean_out, self._loss_entry(clean_out), tensordict), valid)
             chosen = perturb_mask(
                 clean, valid, fraction=self.perturb_fraction * mix, which=spec.perturb, generator=generator
             )
@@ -273,7 +284,8 @@ class TARLoss(LossModule):
         key = self._loss_entry(out)
         losses = self._step_losses(out, key, tensordict)
         # The weights are stop-gradient (Eq. 3): the weighting sees detached losses.
-        weights = self._weight_function(losses.device)(losses.detach(), valid, self.tar_params, mix, generator)
+        scored = self._scored(losses.detach(), valid)
+        weights = self._weight_function(losses.device)(scored, valid, self.tar_params, mix, generator)
         loss = segment_mean(losses, weights, valid)
         for name, value in self._extra_losses(out, key).items():
             loss = loss + value
@@ -302,6 +314,15 @@ class TARLoss(LossModule):
         return TensorDict(result, batch_size=[])
 
     # -- Helpers ----------------------------------------------------------------------------
+
+    def _scored(self, losses: Tensor, valid: Tensor) -> Tensor:
+        """The detached losses the weighting scores: with ``nonfinite="propagate"``, a non-finite one is 0.
+
+        Finite losses pass unchanged (the same values, so the same weights), without a host sync.
+        """
+        if self.nonfinite == "raise":
+            return losses
+        return losses.masked_fill(valid & ~torch.isfinite(losses), 0.0)
 
     def _weight_function(self, device: torch.device):
         """The weighting's function, compiled where ``compile_weights`` says so."""

@@ -11,22 +11,25 @@ config). The loop::
 
 Run directory (``run_dir``, by default ``runs/<objective>-<policy>-s<seed>-<hash>``)::
 
-    config.yaml          the resolved config
-    checkpoint.pt        the whole training state (written atomically), see ``_checkpoint_state``
+    config.yaml          the resolved config (a later start with other settings is refused)
+    checkpoint.pt        the whole training state (written atomically), see ``Trainer.checkpoint``
     metrics.csv          tidy table: step, phase (train | eval), name, value
     eval_rollouts.csv    one row per evaluation rollout (the evaluator's columns + step)
     weights.csv          per-step loss and TAR weight along whole demonstrations (if recorded)
     summary.json         final metrics per difficulty group; "finished": true marks a finished run
+    .lock                flock-ed by the job running in the folder (``tar_rl.runlock``): one job at a time
 
 Resume: running the same command again continues from ``checkpoint.pt`` with the same data
 order (the sampler's generator state), the same schedule and control RNG (the objective's state),
-the same optimiser, LR schedule and EMA state, and the logs as they were at that step; it reaches
-the same final weights as an uninterrupted run. A finished run is reported and skipped, so a sweep
-that was stopped half way is restarted with the same command.
+the same optimiser, LR schedule and EMA state, the logs as they were at that step and each rank's
+logging window (the running sums since the last metrics row); it reaches the same final weights and
+writes the same log files, byte for byte, as an uninterrupted run. A finished run is reported and
+skipped, so a sweep that was stopped half way is restarted with the same command.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
@@ -48,10 +51,12 @@ from tar_rl.collectors import dmc, libero
 from tar_rl.collectors import tasks as mw_tasks
 from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
 from tar_rl.data import DatasetError, DemoDataset, build_dataset, load_dataset
+from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
 from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
 from tar_rl.metrics import summarize
 from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, MixSchedule, TARLoss, window_weights
 from tar_rl.policies import POLICIES, DataInfo, Policy, build_policy
+from tar_rl.runlock import run_lock
 from tar_rl.runs import (
     CHECKPOINT,
     RunLogs,
@@ -89,12 +94,12 @@ __all__ = [
 ]
 
 
-class ConfigError(ValueError):
-    """A bad setting, reported before any work starts."""
+class ConfigError(TarRLError, ValueError):
+    """A bad setting (or a run folder that holds another run), reported before any work starts."""
 
 
-class TrainingError(RuntimeError):
-    """The training run cannot go on (e.g. a non-finite loss); the last good checkpoint is kept."""
+class TrainingError(TarRLError, RuntimeError):
+    """The training run cannot go on (a non-finite loss, a full disk); the last good checkpoint is kept."""
 
 
 # -- Config ------------------------------------------------------------------------------------
@@ -316,6 +321,7 @@ def validate(config: dict) -> dict:
     for key in ("start", "ramp"):
         if not 0 <= obj[key] <= 1:
             raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
+    _check_objective_numbers(obj)
     _check_choice("data.suite", data["suite"], list(SUITES))
     given = _given_dataset(data["path"]) if data["path"] else None
     suite_name = given.source if given is not None else data["suite"]  # a given dataset brings its own
@@ -346,6 +352,9 @@ def validate(config: dict) -> dict:
     if data["image_size"] and suite is not None and not suite.images:
         raise ConfigError(f"data.image_size={data['image_size']}: the {suite_name} suite has no image observations")
     for name, value, low in (
+        ("seed", config["seed"], 0),
+        ("data.seed", data["seed"], 0),
+        ("eval.seed", ev["seed"], 0),
         ("data.n_demos", data["n_demos"], 1),
         ("data.slice_len", data["slice_len"], 1),
         ("data.batch_segments", data["batch_segments"], 1),
@@ -439,6 +448,27 @@ def _check_init(config: dict, policy: Policy, info: DataInfo) -> None:
     init["source"] = source.name
 
 
+def _check_objective_numbers(obj: dict) -> None:
+    """TAR's hyper-parameters (``tar_rl.objectives.TARParams`` checks the same), named as settings."""
+    if not (math.isfinite(obj["gamma"]) and obj["gamma"] > 0):
+        raise ConfigError(
+            f"objective.gamma is a softmax temperature and must be a finite number > 0, got {obj['gamma']}"
+        )
+    if not obj["w_max"] > 0:
+        raise ConfigError(f"objective.w_max is a weight cap and must be > 0 (inf: no cap), got {obj['w_max']}")
+    if obj["cap"] == "exact" and obj["w_max"] < 1:
+        raise ConfigError(
+            f"objective.cap=exact needs objective.w_max >= 1 (weights of mean 1 cannot all lie below 1), "
+            f"got {obj['w_max']}"
+        )
+    if not (math.isfinite(obj["eps"]) and obj["eps"] > 0):
+        raise ConfigError(f"objective.eps must be a finite number > 0, got {obj['eps']}")
+    if not 0 <= obj["perturb_fraction"] <= 1:
+        raise ConfigError(f"objective.perturb_fraction must lie in [0, 1], got {obj['perturb_fraction']}")
+    if not (math.isfinite(obj["perturb_scale"]) and obj["perturb_scale"] >= 0):
+        raise ConfigError(f"objective.perturb_scale must be a finite number >= 0, got {obj['perturb_scale']}")
+
+
 def _device(name: str, local_rank: int = 0) -> torch.device:
     """The torch device for ``device`` (under torchrun, ``cuda`` means this rank's ``cuda:LOCAL_RANK``)."""
     if name in ("auto", "cuda") and torch.cuda.is_available() and local_rank:
@@ -498,6 +528,7 @@ def make_objective(config: dict, policy: Policy) -> TARLoss:
         seed=config["seed"],
         loss_key=policy.loss_key,
         compile_weights=obj["compile"],
+        nonfinite="propagate",  # a NaN/inf step loss reaches the trainer's optim.skip_nonfinite handling
     )
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)
@@ -631,6 +662,12 @@ def identity(config: dict) -> dict:
     return runs.identity(config, default_config(config["objective"]["name"], config["policy"]["name"]))
 
 
+def identity_differences(old: dict, new: dict) -> list[str]:
+    """``key.path: old -> new`` for every setting of a run's identity that differs between two configs (settings
+    a config lacks read as their defaults); empty when both name the same run."""
+    return config_differences(runs.identity(_with_defaults(old), {}), runs.identity(_with_defaults(new), {}))
+
+
 def evaluate_checkpoint(
     path: str | Path,
     tasks: Sequence[str] | None = None,
@@ -683,18 +720,73 @@ def _prepare_run_dir(run_dir: Path) -> None:
         raise ConfigError(f"cannot write to the run directory {run_dir}: {err}") from None
 
 
+def _last_checkpoint(run_dir: Path) -> str:
+    """Where a stopped run resumes from, in words: the last checkpoint's step and file, or that there is none."""
+    path = run_dir / CHECKPOINT
+    try:
+        step = load_checkpoint(path)["step"]
+    except FileNotFoundError:
+        return f"no checkpoint was written yet in {run_dir}"
+    except ValueError:
+        return f"{path} cannot be read"
+    return f"the last good checkpoint (step {step}) is kept in {path}"
+
+
+def _interruption(run_dir: Path, trainer: Trainer | None) -> str:
+    """Where a run stopped by Ctrl-C stopped, and how to resume it."""
+    if trainer is None:
+        where = "before training started (while loading or collecting the dataset)"
+    elif trainer.step < trainer.steps:
+        where = f"at step {trainer.step} of {trainer.steps}"
+    else:
+        where = f"in the final evaluation (after step {trainer.steps})"
+    return f"interrupted {where}; {_last_checkpoint(run_dir)}: run the same command to resume"
+
+
 def _check_resumable(run_dir: Path, config: dict) -> dict | None:
-    """The checkpoint to resume from (None for a new run); refuses one made with other settings."""
+    """The checkpoint to resume from (None for a new run); refuses a folder whose run has other settings.
+
+    Before its first checkpoint a started run is known by its ``config.yaml``, which is compared the same way.
+    """
     path = run_dir / CHECKPOINT
     if not path.exists():
+        _check_same_run(run_dir, _started_config(run_dir), config)
         return None
-    state = load_checkpoint(path)
-    diff = config_differences(identity(state["config"]), identity(config))
+    try:
+        state = load_checkpoint(path)
+    except ValueError as err:
+        raise ConfigError(
+            f"{str(err).splitlines()[0]}; remove {path} to start the run again from step 0, or choose another run_dir"
+        ) from err
+    _check_same_run(run_dir, state["config"], config)
+    return state
+
+
+def _started_config(run_dir: Path) -> dict | None:
+    """The config a started run wrote into ``run_dir/config.yaml`` (None if there is none)."""
+    path = run_dir / "config.yaml"
+    if not path.exists():
+        return None
+    from omegaconf import OmegaConf
+
+    try:
+        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+        if not isinstance(saved, dict):
+            raise ValueError(f"it holds a {type(saved).__name__}, not a config")
+    except Exception as err:  # OmegaConf raises many kinds for a damaged YAML file
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise ConfigError(f"{path} cannot be read ({first}); remove it or choose another run_dir") from err
+    return saved
+
+
+def _check_same_run(run_dir: Path, saved: dict | None, config: dict) -> None:
+    if saved is None:
+        return
+    diff = identity_differences(saved, config)
     if diff:
         raise ConfigError(
             f"{run_dir} holds a run with other settings ({'; '.join(diff)}); choose another run_dir or remove it"
         )
-    return state
 
 
 class Trainer:
@@ -768,6 +860,10 @@ class Trainer:
         self.logs = RunLogs(run_dir)
         self.commit = git_commit()
         self.step, self.skipped, self.train_seconds = 0, 0, 0.0
+        # The logging window: this rank's running sums of the step scalars and the number of steps
+        # summed since the last metrics row (in the checkpoint, so that a resumed run logs the same means).
+        self.window_sums: dict[str, float] = {}
+        self.window_count = 0
         if resume is not None:
             self._restore(resume)
 
@@ -785,10 +881,27 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"])
         self.logs = RunLogs(self.run_dir, **state["logs"])
         self.step, self.skipped, self.train_seconds = state["step"], state["skipped"], state["train_seconds"]
+        self._restore_window(state.get("log_windows") or [])
         self._print(f"{self.run_dir}: resuming at step {self.step} of {self.steps}")
 
+    def _restore_window(self, windows: list[dict]) -> None:
+        """Each rank's logging window as saved; saved by another number of ranks, rank 0 takes their sum.
+
+        (Then the means of the next metrics row agree up to float rounding. Checkpoints that hold
+        no window start with an empty one.)
+        """
+        if len(windows) == self.dist.world:
+            mine = [windows[self.dist.rank]]
+        else:
+            mine = windows if self.dist.main else []
+        for window in mine:
+            for name, value in window["sums"].items():
+                self.window_sums[name] = self.window_sums.get(name, 0.0) + value
+            self.window_count += window["count"]
+
     def checkpoint(self, finished: bool = False) -> None:
-        """Write the whole training state (rank 0; every rank holds the same state)."""
+        """Write the whole training state (rank 0; every rank holds the same state but its logging window)."""
+        windows = self.dist.all_gather_object({"sums": dict(self.window_sums), "count": self.window_count})
         if not self.dist.main:
             return
         ema = self.ema
@@ -807,6 +920,7 @@ class Trainer:
                 "sampler_rng": self.generator.get_state(),
                 "torch_rng": torch.get_rng_state(),
                 "logs": self.logs.state(),
+                "log_windows": windows,
                 "skipped": self.skipped,
                 "train_seconds": self.train_seconds,
                 "world_size": self.dist.world,
@@ -843,13 +957,11 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             self.scheduler.step()
             if self.skipped > self.opt_cfg["skip_nonfinite"]:
-                path = self.run_dir / CHECKPOINT
-                last = load_checkpoint(path)["step"] if path.exists() else None
-                kept = f"The last good checkpoint (step {last}) is kept in {path}." if last is not None else ""
+                allowed = self.opt_cfg["skip_nonfinite"]
                 raise TrainingError(
-                    f"non-finite loss or gradient at step {self.step} (loss={float(loss.detach())}); "
-                    f"{self.skipped} such step(s), optim.skip_nonfinite={self.opt_cfg['skip_nonfinite']}. "
-                    + (kept or "No checkpoint had been written yet.")
+                    f"non-finite loss or gradient at step {self.step} of {self.steps} (loss={float(loss.detach())}; "
+                    f"{self.skipped} such step(s), optim.skip_nonfinite={allowed}); {_last_checkpoint(self.run_dir)}: "
+                    "start a new run with a lower optim.lr, or allow skipped steps with optim.skip_nonfinite=N"
                 )
             return None
         self.optimizer.step()
@@ -892,25 +1004,27 @@ class Trainer:
         if self.dist.main:
             self.logs.write()
         every, eval_every = self.log_cfg["every"], self.config["eval"]["every"]
-        sums, n_ok, tick = {}, 0, time.perf_counter()
+        tick = time.perf_counter()
         self.objective.train()
         bar = tqdm(total=self.steps, initial=self.step, desc="train", unit="step", disable=not self.progress)
         try:
             while self.step < self.steps:
                 scalars = self.train_step()
                 if scalars is not None:
-                    sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
-                    n_ok += 1
+                    sums = self.window_sums
+                    self.window_sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
+                    self.window_count += 1
                 bar.update(1)
                 done = self.step
                 if done % every == 0 or done == self.steps:
                     now = time.perf_counter()
                     self.train_seconds += now - tick
                     tick = now
+                    sums, n_ok = self.window_sums, self.window_count
                     self._log_train(done, sums, n_ok)
                     if n_ok:
                         bar.set_postfix(loss=f"{sums['loss_tar'] / n_ok:.4g}", alpha=f"{sums['tar_mix'] / n_ok:.2f}")
-                    sums, n_ok = {}, 0
+                    self.window_sums, self.window_count = {}, 0
                 if eval_every and done % eval_every == 0 and done != self.steps:
                     self.evaluate(done)
                     tick = time.perf_counter()
@@ -1000,9 +1114,9 @@ def _agree_across_ranks(config: dict, dist: distributed.Dist) -> None:
     """Refuse a job whose ranks were started with different settings (or an indivisible batch)."""
     if not dist.active:
         return
-    settings = dist.all_gather_object(identity(config))
+    settings = dist.all_gather_object(config)
     for rank, other in enumerate(settings):
-        diff = config_differences(settings[0], other)
+        diff = identity_differences(settings[0], other)
         if diff:
             raise ConfigError(
                 f"the ranks were started with different settings (rank 0 vs rank {rank}: {'; '.join(diff)})"
@@ -1021,19 +1135,28 @@ def train(cfg: Any) -> Path:
     Args:
         cfg: a Hydra ``DictConfig``, a :class:`TrainConfig` or an equivalent dict.
 
+    The run directory is locked (``tar_rl.runlock``) by rank 0 from before anything is written into
+    it until the job ends, so a second job on it is refused while this one runs.
+
     Raises:
-        ConfigError: a bad setting, an unwritable run directory, or a run directory holding a
-            different run; raised before any data is collected or any step is taken.
-        TrainingError: non-finite losses beyond ``optim.skip_nonfinite``.
+        ConfigError: a bad setting, an unwritable run directory, a run directory holding a
+            different run, or an unreadable checkpoint; raised before any data is collected or any
+            step is taken.
+        RunFolderBusy: another process is running in the run directory.
+        TrainingError: non-finite losses beyond ``optim.skip_nonfinite``, or no space left on
+            the device (the last good checkpoint is named).
+        RunInterrupted: Ctrl-C during training (the step and the last checkpoint are named).
     """
     config = resolve_config(cfg)
     tasks = validate(config)
     dist = distributed.init(_device(config["device"]).type)
+    held = contextlib.ExitStack()
     try:
         _agree_across_ranks(config, dist)
         run_dir = Path(config["run_dir"] or Path(config["runs_root"]) / run_name(config))
         if dist.main:
             _prepare_run_dir(run_dir)
+            held.enter_context(run_lock(run_dir))
         dist.barrier()
         resume = _check_resumable(run_dir, config)
         if resume is not None and resume.get("finished") and (run_dir / "summary.json").exists():
@@ -1044,8 +1167,14 @@ def train(cfg: Any) -> Path:
             from omegaconf import OmegaConf
 
             atomic_write(run_dir / "config.yaml", lambda f: f.write(OmegaConf.to_yaml(OmegaConf.create(config))))
-        trainer = Trainer(config, tasks, run_dir, resume, dist)
-        table = trainer.run()
+        trainer = None
+        try:
+            trainer = Trainer(config, tasks, run_dir, resume, dist)
+            table = trainer.run()
+        except BaseException as err:
+            if not interrupted(err):
+                raise
+            raise RunInterrupted(_interruption(run_dir, trainer)) from err
         if dist.main:
             trainer.write_summary(table)
             rollouts = config["eval"]["rollouts"]
@@ -1054,10 +1183,20 @@ def train(cfg: Any) -> Path:
             else:
                 print(f"\n{run_dir}: {trainer.steps} steps, final evaluation ({rollouts} rollouts per task):")
                 print_table(table)
+            if trainer.skipped:
+                print(
+                    f"{run_dir}: {trainer.skipped} of {trainer.steps} steps were skipped for a non-finite loss or "
+                    f"gradient (optim.skip_nonfinite={config['optim']['skip_nonfinite']})"
+                )
         del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()
         return run_dir
+    except DiskFullError as err:
+        raise TrainingError(
+            f"{err.what}; {_last_checkpoint(run_dir)}: free some space, then run the same command to resume"
+        ) from err
     finally:
+        held.close()
         distributed.shutdown(dist)
 
 
@@ -1075,12 +1214,20 @@ def hydra_main(argv: list[str] | None = None) -> int:
 
     @hydra.main(version_base="1.3", config_path=None, config_name=CONFIG_NAME)
     def _main(cfg) -> None:
+        # A user's error ends in one line (what, where, what to do); the traceback only in debug mode.
         try:
             train(cfg)
-        except ConfigError as err:
-            raise SystemExit(f"tar-rl train: {err}") from None
-        except TrainingError as err:
-            raise SystemExit(f"tar-rl train: {err}") from None
+        except TarRLError as err:
+            if debug_mode():
+                raise
+            raise SystemExit(one_line("tar-rl train", err)) from None
+        except BaseException as err:
+            if debug_mode() or not interrupted(err):
+                raise
+            if not isinstance(err, RunInterrupted):
+                err = RunInterrupted("interrupted; run the same command to start (or resume) the run")
+            print(one_line("tar-rl train", err), file=sys.stderr)
+            raise SystemExit(130) from None
 
     saved = sys.argv
     sys.argv = ["tar-rl train", *(sys.argv[2:] if argv is None else argv)]

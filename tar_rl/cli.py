@@ -10,13 +10,18 @@ Sub-commands:
   dataset folder; ``tar-rl data import lerobot FOLDER``: a LeRobot dataset on local disk;
   ``tar-rl data info PATH``: a dataset folder's episodes, steps, entries and tasks.
 * ``tar-rl demo``: a short demonstration of the objective on toy data.
+
+An error the user can cause or meet ends in one line naming what happened, where and what to do;
+``--debug`` anywhere on the command line (or ``HYDRA_FULL_ERROR=1``) shows the whole traceback instead.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
+from tar_rl.errors import DEBUG_ENV, debug_mode, one_line
 from tar_rl.objectives import WEIGHTINGS
 
 
@@ -67,6 +72,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    if "--debug" in argv:
+        argv = [a for a in argv if a != "--debug"]
+        os.environ[DEBUG_ENV] = "1"  # Hydra's switch for whole tracebacks, read by every command here
     # train and report parse their own arguments (Hydra's overrides; the report's options).
     if argv and argv[0] == "train":
         from tar_rl.recipes.offline_bc import hydra_main
@@ -92,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
                 progress=not args.no_progress,
             )
         except (ConfigError, FileNotFoundError, ValueError) as err:
-            raise SystemExit(f"tar-rl eval: {err}") from None
+            if debug_mode():
+                raise
+            raise SystemExit(one_line("tar-rl eval", err)) from None
         return 0
     if args.command == "data":
         return _data_command(args)
@@ -113,7 +123,9 @@ def _data_command(args: argparse.Namespace) -> int:
         try:
             IMPORTERS.get(args.format).run(args, **common)
         except DemoImportError as err:
-            raise SystemExit(f"tar-rl data import {args.format}: {err}") from None
+            if debug_mode():
+                raise
+            raise SystemExit(one_line(f"tar-rl data import {args.format}", err)) from None
         return 0
     import json
 
@@ -123,6 +135,8 @@ def _data_command(args: argparse.Namespace) -> int:
     try:
         info = dataset_info(args.path)
     except DatasetError as err:
-        raise SystemExit(f"tar-rl data info: {err}") from None
+        if debug_mode():
+            raise
+        raise SystemExit(one_line("tar-rl data info", err)) from None
     print(json.dumps(info, indent=2) if args.json else format_info(info))
     return 0

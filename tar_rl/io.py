@@ -1,6 +1,8 @@
 """Atomic file writes: a temporary file in the target's folder, flushed to disk, then renamed.
 
-A crash at any point leaves either the previous file or the new one, never a partial file.
+A crash at any point leaves either the previous file or the new one, never a partial file. A write
+that fails for want of space (``ENOSPC``, ``EDQUOT``; torch reports it inside ``torch.save`` as a
+``RuntimeError``) raises :class:`tar_rl.errors.DiskFullError` naming the file.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+from tar_rl.errors import DiskFullError, disk_full_cause
+
 __all__ = ["atomic_write", "save_torch_atomic", "write_csv_atomic", "write_json_atomic"]
 
 
@@ -19,22 +23,34 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO], object], binary:
     """Call ``write(f)`` on a file (text, or bytes with ``binary=True``) that becomes ``path`` only once complete.
 
     The folder is created if needed; the file gets ordinary permissions (0644, not mkstemp's 0600).
+
+    Raises:
+        DiskFullError: no space left (or quota exhausted) while writing; ``path`` is unchanged.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = None
     try:
-        with os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", newline="") as f:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        with _open(fd, binary, path) as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as err:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+        full = disk_full_cause(err)
+        if full is not None and not isinstance(err, DiskFullError):
+            raise DiskFullError(path, full) from err
         raise
     return path
+
+
+def _open(fd: int, binary: bool, path: Path) -> IO:
+    """The temporary file of :func:`atomic_write` that becomes ``path`` (a seam for tests that simulate a full disk)."""
+    return os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", newline="")
 
 
 def write_csv_atomic(df, path: str | os.PathLike) -> Path:

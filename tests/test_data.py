@@ -261,11 +261,43 @@ def _wrong_length(path):
     (path / "metadata.json").write_text(json.dumps(meta))
 
 
+def _edit_metadata_number(path):
+    # A number the policy uses (its observation normaliser's mean), edited by hand.
+    meta = json.loads((path / "metadata.json").read_text())
+    meta["stats"]["observation"]["mean"][1] = 5.0
+    (path / "metadata.json").write_text(json.dumps(meta, indent=1))
+
+
+def _edit_episode_lengths(path):
+    meta = json.loads((path / "metadata.json").read_text())
+    task = next(iter(meta["per_task"]))
+    lengths = meta["per_task"][task]["episode_lengths"]
+    lengths[0], lengths[1] = lengths[0] + 1, lengths[1] - 1  # the same total: the sizes still agree
+    (path / "metadata.json").write_text(json.dumps(meta, indent=1))
+
+
+def _flip_memmap_byte(path):
+    f = path / "buffer" / "storage" / "observation.memmap"
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0x01  # one bit of one float: the size and every structural check still agree
+    f.write_bytes(bytes(data))
+
+
 @pytest.mark.parametrize(
     "corrupt",
-    [_remove_metadata, _garble_metadata, _truncate_storage, _remove_storage, _wrong_length, _other_settings],
+    [
+        _remove_metadata,
+        _garble_metadata,
+        _truncate_storage,
+        _remove_storage,
+        _wrong_length,
+        _other_settings,
+        _edit_metadata_number,
+        _edit_episode_lengths,
+        _flip_memmap_byte,
+    ],
 )
-def test_corrupt_dataset_is_detected_and_rebuilt(built, arrays, tmp_path, capsys, corrupt):
+def test_corrupt_dataset_is_detected_and_rebuilt(built, arrays, tmp_path, capsys, caplog, corrupt):
     _, ds = built
     copy = tmp_path / ds.path.name
     shutil.copytree(ds.path, copy)
@@ -275,11 +307,50 @@ def test_corrupt_dataset_is_detected_and_rebuilt(built, arrays, tmp_path, capsys
             load_dataset(copy)
     capsys.readouterr()
     rebuilt = build_dataset(tmp_path, TASKS, N_DEMOS, seed=SEED, chunk_horizon=H, history=K, workers=0, progress=False)
-    assert "corrupt" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert (printed.out + printed.err + caplog.text).count("is incomplete or corrupt") == 1  # reported once
     assert rebuilt.path == copy
+    assert rebuilt.metadata == ds.metadata | {"collection_seconds": rebuilt.metadata["collection_seconds"]} | {
+        "created": rebuilt.metadata["created"]
+    }
     td = load_dataset(copy).data
     for key, value in arrays.items():
         np.testing.assert_array_equal(td.get(key).numpy(), value, err_msg=str(key))
+
+
+@pytest.mark.parametrize(
+    ("corrupt", "named"),
+    [(_edit_metadata_number, "metadata.json"), (_flip_memmap_byte, "observation.memmap")],
+)
+def test_changed_content_is_refused_naming_the_folder_and_file(built, tmp_path, corrupt, named):
+    _, ds = built
+    copy = tmp_path / "mine"
+    shutil.copytree(ds.path, copy)
+    load_dataset(copy)  # intact: loads
+    corrupt(copy)
+    with pytest.raises(DatasetError, match=rf"{copy}/.*{named} differs from its content digest"):
+        load_dataset(copy)
+
+
+def test_a_folder_without_a_digest_gets_one_on_its_first_load(built, tmp_path, capsys):
+    # Datasets written before the digest existed are checked as before, then get theirs.
+    _, ds = built
+    copy = tmp_path / "earlier"
+    shutil.copytree(ds.path, copy)
+    (copy / "digest.json").unlink()
+    capsys.readouterr()
+    load_dataset(copy)
+    assert "had no content digest" in capsys.readouterr().out
+    recorded = json.loads((copy / "digest.json").read_text())
+    assert recorded == json.loads((ds.path / "digest.json").read_text())  # the content is the same
+    assert sorted(recorded["files"]) == sorted(
+        p.relative_to(copy).as_posix() for p in copy.rglob("*") if p.is_file() and p.name != "digest.json"
+    )
+    load_dataset(copy)
+    assert capsys.readouterr().out == ""  # checked, not written again
+    _flip_memmap_byte(copy)
+    with pytest.raises(DatasetError, match="differs from its content digest"):
+        load_dataset(copy)
 
 
 def test_leftover_temp_folder_is_removed(built, tmp_path, capsys):
@@ -484,6 +555,23 @@ def test_bench_data_quick_writes_csv(tmp_path, monkeypatch):
     assert set(df.section) == {"collect_per_step", "collect_end_to_end", "segments"}
     assert (df["median"] > 0).all() and (df["ratio_to_baseline"] > 0).all()
     assert not list(tmp_path.glob(".*")), "no temporary file left beside the CSV"
+
+
+@pytest.mark.slow  # collects a tiny dataset and starts two `tar-rl train` processes: ~20 s
+def test_bench_data_startup_quick_writes_csv(tmp_path, monkeypatch):
+    import importlib
+    from pathlib import Path
+
+    import pandas as pd
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    bench = importlib.import_module("bench_data")
+    out = tmp_path / "startup.csv"
+    bench.main(["--quick", "--sections", "startup", "--root", str(tmp_path / "data"), "--out", str(out)])
+    df = pd.read_csv(out)
+    assert list(df.columns) == bench.COLUMNS
+    assert list(df.variant) == ["job_startup", "load_dataset", "check_content"]
+    assert (df["median"] > 0).all() and (df.baseline == "job_startup").all()
 
 
 def test_worker_init_sets_one_torch_thread():

@@ -177,7 +177,7 @@ def job(tmp_path_factory):
         "policy.hidden=[32,32]",
         "optim.steps=20",
         "optim.warmup=2",
-        "logging.every=5",
+        "logging.every=4",  # the checkpoint of step 10 falls inside a logging window (steps 9..12)
         "logging.checkpoint_every=10",
         "logging.progress=false",
         "eval.rollouts=2",
@@ -254,6 +254,8 @@ def test_a_killed_two_rank_job_resumes_to_the_same_weights(job, two_ranks):
     final = load_checkpoint(run_dir)
     for name, value in whole["policy"].items():
         assert torch.equal(final["policy"][name], value), name
+    for name in ("metrics.csv", "eval_rollouts.csv", "weights.csv"):  # each rank's logging window was kept
+        assert (run_dir / name).read_bytes() == (two_ranks[0] / name).read_bytes(), name
 
 
 @pytest.mark.slow

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 
 import pandas as pd
 import pytest
+import torch
 
-from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
+from tar_rl import io
+from tar_rl.errors import DiskFullError
+from tar_rl.io import atomic_write, save_torch_atomic, write_csv_atomic, write_json_atomic
 
 
 def test_failed_write_keeps_the_old_file_and_leaves_no_temp(tmp_path):
@@ -29,3 +33,45 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_temp(tmp_path):
 def test_json_round_trip(tmp_path):
     path = write_json_atomic({"tasks": ["reach-v3"], "n": 3}, tmp_path / "m.json")
     assert json.loads(path.read_text()) == {"tasks": ["reach-v3"], "n": 3}
+
+
+class _FullDisk:
+    """A file on a full disk: every write fails with ENOSPC, as the OS reports it."""
+
+    def __init__(self, f):
+        self._f = f
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._f.close()
+
+
+@pytest.mark.parametrize(
+    ("name", "write"),
+    [
+        ("state.pt", lambda path: save_torch_atomic({"w": torch.zeros(1000)}, path)),  # torch wraps the OSError
+        ("table.csv", lambda path: write_csv_atomic(pd.DataFrame({"a": [3]}), path)),
+        ("summary.json", lambda path: write_json_atomic({"a": 3}, path)),
+    ],
+)
+def test_a_full_disk_names_the_file_and_keeps_the_old_one(tmp_path, monkeypatch, name, write):
+    path = tmp_path / name
+    path.write_bytes(b"old content")
+    real_open = io._open
+    monkeypatch.setattr(io, "_open", lambda fd, binary, target: _FullDisk(real_open(fd, binary, target)))
+    with pytest.raises(DiskFullError) as info:
+        write(path)
+    assert str(info.value) == (
+        f"no space left on device while writing {path} (disk full); the previous {name}, if any, is unchanged"
+    )
+    assert isinstance(info.value, OSError) and info.value.errno == errno.ENOSPC
+    assert path.read_bytes() == b"old content"
+    assert os.listdir(tmp_path) == [name]  # no temporary file left

@@ -137,7 +137,10 @@ def test_unknown_keys_and_options_are_refused_at_composition(override, error, na
         (["objective.cap=loose"], "objective.cap"),
         (["objective.compile=sometimes"], "objective.compile"),
         (["objective.start=1.5"], "objective.start"),
-        (["objective.w_max=0.5", "objective.cap=exact"], "w_max"),
+        (["objective.w_max=0.5", "objective.cap=exact"], "objective.w_max >= 1"),
+        (["objective.gamma=0"], "objective.gamma"),
+        (["objective.w_max=-1"], "objective.w_max"),
+        (["objective.eps=0"], "objective.eps"),
         (["optim.decay=step"], "optim.decay"),
         (["optim.ema=1.0"], "optim.ema"),
         (["optim.steps=0"], "optim.steps"),
@@ -151,6 +154,15 @@ def test_bad_values_are_refused_before_any_work(tmp_path, overrides, named):
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
         train(config)
     assert not (tmp_path / "data").exists()  # nothing was collected
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("override", ["seed=-1", "data.seed=-1", "eval.seed=-1"])
+def test_negative_seeds_are_refused_before_the_run_folder_exists(tmp_path, data_root, override):
+    setting = override.split("=")[0]
+    config = tiny(tmp_path, data_root, override)
+    with pytest.raises(ConfigError, match=rf"^{setting.replace('.', r'[.]')} must be an integer >= 0, got -1"):
+        train(config)
     assert not (tmp_path / "runs").exists()
 
 
@@ -365,17 +377,39 @@ class _Crash(Exception):
     pass
 
 
+LOG_FILES = ("metrics.csv", "eval_rollouts.csv", "weights.csv")
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, data_root):
     tmp = tmp_path_factory.mktemp("whole")
-    # `random` draws from the objective's generator every step; EMA adds its own state.
-    config = tiny(tmp, data_root, "objective=random", "optim.ema=0.9", "logging.record_weights_at=[]")
-    return _final_state(train(config)), config
+    # `random` draws from the objective's generator every step; EMA adds its own state. Metrics rows
+    # every 4 steps and checkpoints every 10: the checkpoint of step 10 falls inside a logging window
+    # (steps 9..12), so a run resumed from it must carry the window's running sums over.
+    config = tiny(
+        tmp,
+        data_root,
+        "objective=random",
+        "optim.ema=0.9",
+        "logging.every=4",
+        "eval.every=20",
+        "logging.record_weights_at=[10,-1]",
+    )
+    run_dir = train(config)
+    return _final_state(run_dir), config, {name: (run_dir / name).read_bytes() for name in LOG_FILES}
 
 
-@pytest.mark.parametrize("crash_at", [17, 21])  # between checkpoints; right after the one at step 20
-def test_a_killed_run_resumes_to_the_same_final_weights(tmp_path, data_root, monkeypatch, uninterrupted, crash_at):
-    whole, whole_config = uninterrupted
+def _assert_same_log_files(logs: dict[str, bytes], run_dir: Path) -> None:
+    for name, expected in logs.items():
+        assert (run_dir / name).read_bytes() == expected, name
+
+
+# between checkpoints (and inside a logging window); right after the checkpoint of step 20
+@pytest.mark.parametrize("crash_at", [17, 21])
+def test_a_killed_run_resumes_to_the_same_weights_and_byte_identical_logs(
+    tmp_path, data_root, monkeypatch, uninterrupted, crash_at
+):
+    whole, whole_config, logs = uninterrupted
     config = {**whole_config, "runs_root": str(tmp_path / "runs")}
     calls = {"n": 0}
     original = SegmentSampler.sample
@@ -396,11 +430,12 @@ def test_a_killed_run_resumes_to_the_same_final_weights(tmp_path, data_root, mon
     train(config)
     _assert_same_training(whole, _final_state(run_dir))
     metrics = pd.read_csv(run_dir / "metrics.csv")
-    assert sorted(metrics[metrics.phase == "train"].step.unique()) == [5, 10, 15, 20, 25, 30]  # no step logged twice
+    assert sorted(metrics[metrics.phase == "train"].step.unique()) == [4, 8, 12, 16, 20, 24, 28, 30]  # none twice
+    _assert_same_log_files(logs, run_dir)
 
 
 def test_a_crash_while_writing_a_checkpoint_keeps_the_previous_one(tmp_path, data_root, monkeypatch, uninterrupted):
-    whole, whole_config = uninterrupted
+    whole, whole_config, logs = uninterrupted
     config = {**whole_config, "runs_root": str(tmp_path / "runs")}
     real_save = torch.save
     calls = {"n": 0}
@@ -421,41 +456,52 @@ def test_a_crash_while_writing_a_checkpoint_keeps_the_previous_one(tmp_path, dat
     monkeypatch.setattr(torch, "save", real_save)
     train(config)
     _assert_same_training(whole, _final_state(run_dir))
+    _assert_same_log_files(logs, run_dir)
 
 
 def _nan_after(monkeypatch, step: int) -> None:
-    real_forward = TARLoss.forward
+    """From training step ``step`` on, every per-step loss of the head is NaN (where a diverging run's NaN arises)."""
+    real = TARLoss._step_losses
 
-    def forward(self, tensordict):
-        out = real_forward(self, tensordict)
-        if int(out["schedule_step"]) + 1 >= step:
-            out["loss_tar"] = out["loss_tar"] * float("nan")
-        return out
+    def step_losses(self, out, key, tensordict):
+        losses = real(self, out, key, tensordict)
+        if self.training and int(self.schedule_step) + 1 >= step:
+            losses = losses * float("nan")
+        return losses
 
-    monkeypatch.setattr(TARLoss, "forward", forward)
+    monkeypatch.setattr(TARLoss, "_step_losses", step_losses)
 
 
-def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, data_root, monkeypatch):
-    config = tiny(tmp_path, data_root)
+@pytest.mark.parametrize("objective", ["tar", "uniform"])
+def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, data_root, monkeypatch, objective):
+    config = tiny(tmp_path, data_root, f"objective={objective}")
     _nan_after(monkeypatch, 15)
-    with pytest.raises(
-        TrainingError, match=r"non-finite loss or gradient at step 15.*last good checkpoint \(step 10\)"
-    ):
+    with pytest.raises(TrainingError) as info:
         train(config)
     (run_dir,) = list((tmp_path / "runs").iterdir())
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith("non-finite loss or gradient at step 15 of 30")
+    assert f"the last good checkpoint (step 10) is kept in {run_dir / CHECKPOINT}" in message
+    assert "optim.skip_nonfinite" in message
     state = load_checkpoint(run_dir)
     assert state["step"] == 10
     assert all(torch.isfinite(v).all() for v in state["policy"].values())
 
 
-def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch):
-    config = tiny(tmp_path, data_root, "optim.skip_nonfinite=100")
+@pytest.mark.parametrize("objective", ["tar", "uniform"])
+def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch, capsys, objective):
+    config = tiny(tmp_path, data_root, f"objective={objective}", "optim.skip_nonfinite=100")
     _nan_after(monkeypatch, 26)  # steps 26..30 are skipped
     run_dir = train(config)
     metrics = pd.read_csv(run_dir / "metrics.csv")
     skipped = metrics[(metrics.phase == "train") & (metrics.name == "skipped")].set_index("step").value
     assert skipped[25] == 0 and skipped[30] == 5
     assert json.loads((run_dir / "summary.json").read_text())["nonfinite_steps_skipped"] == 5
+    last_lines = capsys.readouterr().out.strip().splitlines()[-2:]
+    assert any("5 of 30 steps were skipped" in line and "optim.skip_nonfinite=100" in line for line in last_lines)
+    state = load_checkpoint(run_dir)
+    assert all(torch.isfinite(v).all() for v in state["policy"].values())
 
 
 def test_multirun_sweep_over_objectives_and_its_restart_skips_finished_runs(tmp_path, data_root):

@@ -461,3 +461,12 @@ def test_main_default_out_and_errors(sweep, tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit):
         main([])
     assert "RUN_DIR" in capsys.readouterr().err
+
+
+def test_main_fails_when_no_run_is_finished(tmp_path, capsys):
+    write_run(tmp_path / "runs", "tar", 0, ROLLOUTS[("tar", 0)], finished=False)
+    write_run(tmp_path / "runs", "uniform", 0, ROLLOUTS[("uniform", 0)], finished=None)  # still training
+    assert main([str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"tar-rl report: no finished run among the 2 run(s) of {tmp_path / 'runs'}")
+    assert "nothing to compare" in err[-1]

@@ -335,6 +335,24 @@ class TestBadInput:
             with pytest.raises(ValueError, match="non-finite"):
                 make_loss(name)(batch)
 
+    @pytest.mark.parametrize("name", sorted(WEIGHTINGS))
+    def test_nonfinite_propagate_makes_the_loss_non_finite(self, segments, name):
+        # Finite losses: the same loss and gradient as the default (bit for bit). A NaN at one valid
+        # step: no exception, a non-finite loss (for the training loop's own handling).
+        raising, propagating = make_loss(name), make_loss(name, nonfinite="propagate")
+        a, b = raising(segments), propagating(segments)
+        assert torch.equal(a["loss_tar"], b["loss_tar"])
+        a["loss_tar"].backward()
+        b["loss_tar"].backward()
+        for p, q in zip(raising.parameters(), propagating.parameters()):
+            assert torch.equal(p.grad, q.grad)
+        batch = segments.clone()
+        i, t = batch["collector", "mask"].nonzero()[0].tolist()
+        batch["action"][i, t, 0] = float("nan")
+        assert torch.isnan(propagating(batch)["loss_tar"])
+        with pytest.raises(ValueError, match="nonfinite must be one of"):
+            make_loss(name, nonfinite="skip")
+
     def test_unknown_weighting(self):
         with pytest.raises(ValueError, match=r"unknown weighting 'tar2'.*uniform, tar"):
             make_loss("tar2")

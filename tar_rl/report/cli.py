@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -44,14 +45,14 @@ def main(argv: list[str] | None = None) -> int:
     (objective, policy, seed, overall success, 100 x Fast20, 100 x NEPS), notes on unfinished runs,
     the comparison pooled over seeds and the paired differences to ``uniform``; writes
     ``comparison.csv``, ``success_vs_neps.png``, ``group_success.png`` and ``weights_<run>.png`` for
-    each run with ``weights.csv`` into ``--out``. With no finished run it prints the runs and writes
-    only the weight figures.
+    each run with ``weights.csv`` into ``--out``. With no finished run it prints the runs, writes
+    only the weight figures and ends with a line saying so, returning 1.
 
     Args:
         argv: the arguments after ``report`` (default: ``sys.argv[1:]``).
 
     Returns:
-        0.
+        0, or 1 when no run is finished (nothing was compared).
 
     Raises:
         SystemExit: bad arguments, a bad run directory or runs that cannot be compared (the message says why).
@@ -86,7 +87,6 @@ def main(argv: list[str] | None = None) -> int:
     else:
         for run in runs:
             print(f"note: {run.name} ({run.path}): {'; '.join(run.notes)}")
-        print("no finished run: nothing to compare")
     used: set[str] = set()
     for run in runs:
         if run.weights is None:
@@ -101,4 +101,11 @@ def main(argv: list[str] | None = None) -> int:
         )
     if written:
         print("\nwrote: " + ", ".join(str(p) for p in written))
+    if not any(r.finished for r in runs):
+        print(
+            f"tar-rl report: no finished run among the {len(runs)} run(s) of {' '.join(args.runs)}: nothing to "
+            "compare; let the runs finish (run a stopped run's tar-rl train command again to resume it)",
+            file=sys.stderr,
+        )
+        return 1
     return 0
