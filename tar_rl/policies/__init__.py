@@ -172,8 +172,12 @@ def build_policy(cfg, info: DataInfo) -> Policy:
     return spec.build(cfg, info)
 
 
-# The heads register themselves on import; importing the package registers them all.
+# The heads register themselves on import, in this order (the order of listings and messages).
+# isort: off
+from .mlp import MLPConfig, MLPPolicy  # noqa: E402
 from .act import ACTChunkLoss, ACTConfig, ACTModel  # noqa: E402
-from .flow import FlowConfig  # noqa: E402
-from .mlp import MLPConfig, MLPPolicy, ObsNorm  # noqa: E402
 from .octo import OctoConfig, OctoDiffusionConfig, OctoLinearConfig  # noqa: E402
+from .flow import FlowConfig  # noqa: E402
+
+# isort: on
+from .common import ObsNorm  # noqa: E402

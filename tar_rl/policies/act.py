@@ -10,7 +10,7 @@ observation and the task:
 * **Encoder-decoder**: a transformer encoder over three tokens ``[z, obs, task]`` (learned
   positions), then a transformer decoder whose ``H`` learned query embeddings cross-attend to
   the encoded tokens; a linear layer maps each query's output to an action: ``[H, A]``.
-* **Image observations** (``observation="image"``, :mod:`tar_rl.policies.vision`): the state
+* **Image observations** (``observation="image"``, :mod:`tar_rl.policies.common`): the state
   tokens carry the proprioceptive state only and the encoder reads a fourth token, the current
   camera image through the conv encoder (ACT reads camera features as tokens too); the CVAE
   encoder sees the proprioceptive state and the actions, as in ACT, not the image.
@@ -44,9 +44,7 @@ from torchrl.objectives import LossModule
 
 from . import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import EXECUTIONS, ChunkedActor
-from .conditioning import TASK_CONDITIONING, TaskEncoder
-from .mlp import ObsNorm
-from .vision import PROPRIO_DIMS, image_encoder
+from .common import PROPRIO_DIMS, TASK_CONDITIONING, ObsNorm, TaskEncoder, image_encoder
 
 __all__ = ["ACTChunkLoss", "ACTConfig", "ACTModel", "gaussian_kl"]
 

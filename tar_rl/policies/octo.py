@@ -3,7 +3,7 @@
 The backbone (:class:`OctoBackbone`, after Octo, Ghosh et al. 2024, at a size that trains on a
 CPU) reads a window of ``K`` observations and the task and returns one feature vector:
 
-* tokens: one task token (:class:`~tar_rl.policies.conditioning.TaskEncoder`), ``K``
+* tokens: one task token (:class:`~tar_rl.policies.common.TaskEncoder`), ``K``
   observation tokens (the ``observation_history`` window, normalised with the training data's
   statistics, projected to ``dim``, plus a learned embedding per window position) and ``readouts``
   learned readout tokens;
@@ -14,7 +14,7 @@ CPU) reads a window of ``K`` observations and the task and returns one feature v
   and invalid history entries (before the episode start, ``observation_history_valid`` False) are
   masked out of every attention: they cannot change the output;
 * the readout tokens' outputs are mean-pooled and layer-normalised: ``[N, dim]`` features.
-* with ``observation="image"`` (:mod:`tar_rl.policies.vision`) the observation tokens carry the
+* with ``observation="image"`` (:mod:`tar_rl.policies.common`) the observation tokens carry the
   proprioceptive state only, and the current step's camera image enters as one more token, after
   the observation tokens (the conv encoder's features, ``dim`` wide): it attends to the task, the
   valid observation tokens and itself, and the readouts attend to it.
@@ -58,9 +58,7 @@ from torchrl.objectives import LossModule
 
 from . import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import EXECUTIONS, ChunkedActor
-from .conditioning import TASK_CONDITIONING, TaskEncoder
-from .mlp import ObsNorm
-from .vision import PROPRIO_DIMS, image_encoder
+from .common import PROPRIO_DIMS, TASK_CONDITIONING, ObsNorm, TaskEncoder, image_encoder
 
 __all__ = [
     "SAMPLERS",
