@@ -30,9 +30,10 @@ from tar_rl.registry import Registry
 
 __all__ = [
     "POLICIES",
-    "ACTChunkLoss",
     "ACTConfig",
     "ACTModel",
+    "ChunkLoss",
+    "ChunkedHeadConfig",
     "DataInfo",
     "FlowConfig",
     "MLPConfig",
@@ -175,9 +176,11 @@ def build_policy(cfg, info: DataInfo) -> Policy:
 # The heads register themselves on import, in this order (the order of listings and messages).
 # isort: off
 from .mlp import MLPConfig, MLPPolicy  # noqa: E402
-from .act import ACTChunkLoss, ACTConfig, ACTModel  # noqa: E402
-from .octo import OctoConfig, OctoDiffusionConfig, OctoLinearConfig  # noqa: E402
+from .act import ACTConfig, ACTModel  # noqa: E402
+from .octo import OctoConfig, OctoLinearConfig  # noqa: E402
+from .diffusion import OctoDiffusionConfig  # noqa: E402
 from .flow import FlowConfig  # noqa: E402
 
 # isort: on
+from .chunking import ChunkedHeadConfig, ChunkLoss  # noqa: E402
 from .common import ObsNorm  # noqa: E402
