@@ -7,7 +7,16 @@ A head gives the recipe two things (:class:`Policy`):
   (``[..., 4]``). The evaluator collectors call it on ``[N]`` batches; it must be picklable.
 * ``loss``: a TorchRL ``LossModule`` built with ``reduction="none"`` whose one ``loss_*`` output is
   the per-step loss ``[B, L]`` or ``[B, L, ...]`` on a ``[B, L]`` segment batch. Heads never
-  average over the segment axis: ``tar_rl.TARLoss`` owns that reduction.
+  average over the segment axis: ``tar_rl.TARLoss`` owns that reduction. A loss names its
+  supervision target by a ``target_key`` (the chunked heads' :class:`ChunkLoss`: ``action_chunk``)
+  or, as torchrl's BC losses do, by its ``action`` key: that is the entry the objective's
+  supervision transforms (the ``perturb_*`` controls) corrupt.
+
+The modules: :mod:`.common` (inputs every head shares: observation normalisation, task
+conditioning, the image encoder), :mod:`.chunking` (what every chunked head shares: settings,
+:class:`ChunkLoss`, the inference actor), and one module per head family: :mod:`.mlp`,
+:mod:`.act`, :mod:`.octo` (the Octo-style backbone and ``octo_linear``), :mod:`.diffusion`
+(``octo_diffusion``), :mod:`.flow`.
 
 Every head is registered in :data:`POLICIES` with its config dataclass (the fields a recipe may
 set, with defaults) and its builder ``build(config, info) -> Policy``. ``info``

@@ -77,9 +77,6 @@ class ACTConfig(ChunkedHeadConfig):
         kl_weight: weight of the KL term (``loss_kl``), ACT's beta.
         dropout: dropout in the transformer layers (training only). ACT uses 0.1; the default
             is 0 because on CPU drawing the dropout masks took about 30% of a training step.
-        normalize_obs: standardise observations with the training data's statistics.
-        observation: ``state`` or ``image`` (the current camera image as an encoder token, plus
-            the proprioceptive state; needs a dataset with images, ``data.image_size > 0``).
     """
 
     name: str = "act"
@@ -92,8 +89,6 @@ class ACTConfig(ChunkedHeadConfig):
     latent_dim: int = 16
     kl_weight: float = 10.0
     dropout: float = 0.0
-    normalize_obs: bool = True
-    observation: str = "state"
 
 
 def _check_config(cfg: ACTConfig, info: DataInfo) -> None:

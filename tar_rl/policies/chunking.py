@@ -4,8 +4,9 @@ A chunked head predicts the next ``H`` actions (a chunk) from the current observ
 ``K`` observations) and the task. Three parts serve every such head (``act``, ``octo_linear``,
 ``octo_diffusion``, ``flow``):
 
-**Settings** (:class:`ChunkedHeadConfig`): the task conditioning and how chunks are executed at
-inference, defined and validated once; each head's config adds its own fields.
+**Settings** (:class:`ChunkedHeadConfig`): the task conditioning, the observation kind and its
+normalisation, and how chunks are executed at inference, defined and validated once; each head's
+config adds its own fields.
 
 **Training loss** (:class:`ChunkLoss`): one TorchRL ``LossModule`` for every chunked head. The
 head's model says which entries it reads (``loss_inputs``) and computes, from them, the loss of
@@ -74,7 +75,7 @@ def check_execution(execution: str, execute_steps: int, ensemble_decay: float, h
 
 @dataclass
 class ChunkedHeadConfig:
-    """Settings every chunked head has; a head's config inherits them and adds its own.
+    """Settings every chunked head has: inputs and chunk execution; a head's config inherits them and adds its own.
 
     Attributes:
         name: registry name (each head's config sets it).
@@ -84,6 +85,10 @@ class ChunkedHeadConfig:
             ``open_loop`` (``execute_steps`` actions of each chunk, then a new one).
         execute_steps: actions executed per chunk with ``open_loop`` (``1 .. H``).
         ensemble_decay: ``m`` of the temporal ensemble's weights ``exp(-m * i)`` (ACT: 0.01).
+        normalize_obs: standardise observations with the training data's statistics.
+        observation: ``state`` or ``image`` (the current camera image, read as one more token,
+            plus the proprioceptive state; needs a dataset with images, ``data.image_size > 0``;
+            see :mod:`tar_rl.policies.common`).
     """
 
     name: str
@@ -91,6 +96,8 @@ class ChunkedHeadConfig:
     execution: str = "ensemble"
     execute_steps: int = 1
     ensemble_decay: float = 0.01
+    normalize_obs: bool = True
+    observation: str = "state"
 
     def check_chunking(self, horizon: int) -> None:
         """Raise ``ValueError`` naming the setting for a bad shared setting (``horizon``: the chunk length ``H``)."""

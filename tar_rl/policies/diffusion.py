@@ -199,16 +199,13 @@ class OctoDiffusion(SeededSampling):
         noisy = ab.sqrt() * chunk + (1 - ab).sqrt() * noise
         return (self.eps(noisy, t, features).float() - noise).square()
 
-    @torch.no_grad()
-    def predict_chunk(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
-        features = self.backbone(history, history_valid, task_id, pixels)
-        n = features.shape[0]
-        gen = self.sampling_generator(features.device)
-        x = self.initial_noise(n, (self.horizon, self.action_dim), gen, features.device)
+    def sample(self, noise: torch.Tensor, features: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """The chunk ``[N, H, A]`` by DDIM or DDPM from ``noise``, the predicted clean chunk clipped at every step."""
         steps = sampling_timesteps(self.train_steps, self.sample_steps)
         eta = 0.0 if self.sampler == "ddim" else 1.0
-        x = ddim_sample(lambda x, t: self.eps(x, t, features), x, self.alpha_bar, steps, eta=eta, generator=gen)
-        return x.clamp(-1.0, 1.0)
+        return ddim_sample(
+            lambda x, t: self.eps(x, t, features), noise, self.alpha_bar, steps, eta=eta, generator=generator
+        )
 
 
 def _build_diffusion(cfg: OctoDiffusionConfig, info: DataInfo) -> Policy:

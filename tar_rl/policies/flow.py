@@ -132,14 +132,9 @@ class FlowPolicy(SeededSampling):
         v = self.velocity(x_tau, tau, features).float()
         return (v - (noise - actions)).square().reshape(*lead, self.horizon, self.action_dim)
 
-    @torch.no_grad()
-    def predict_chunk(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
-        features = self.backbone(history, history_valid, task_id, pixels)
-        n = features.shape[0]
-        gen = self.sampling_generator(features.device)
-        x = self.initial_noise(n, (self.horizon, self.action_dim), gen, features.device)
-        x = euler_integrate(lambda x, tau: self.velocity(x, tau, features), x, self.sample_steps)
-        return x.clamp(-1.0, 1.0)
+    def sample(self, noise: torch.Tensor, features: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """The chunk ``[N, H, A]``: ``sample_steps`` Euler steps from ``noise`` at ``tau = 1`` to 0."""
+        return euler_integrate(lambda x, tau: self.velocity(x, tau, features), noise, self.sample_steps)
 
 
 def _build_flow(cfg: FlowConfig, info: DataInfo) -> Policy:

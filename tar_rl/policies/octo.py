@@ -85,10 +85,6 @@ class OctoConfig(ChunkedHeadConfig):
         layers: transformer blocks.
         readouts: learned readout tokens (mean-pooled into the features).
         dropout: dropout rate in attention and in the blocks' residual branches.
-        normalize_obs: standardise observations with the training data's statistics.
-        observation: ``state`` (the state vectors of the window) or ``image`` (the current camera
-            image as a token, plus the proprioceptive state of the window; needs a dataset with
-            images, ``data.image_size > 0``).
     """
 
     name: str = "octo"
@@ -97,8 +93,6 @@ class OctoConfig(ChunkedHeadConfig):
     layers: int = 2
     readouts: int = 2
     dropout: float = 0.0
-    normalize_obs: bool = True
-    observation: str = "state"
 
 
 @dataclass
@@ -308,20 +302,23 @@ class SeededSampling(OctoHead):
     """Base of the heads that sample at inference: a fresh generator seeded with ``cfg.seed`` per call.
 
     No generator is kept on the module (a ``torch.Generator`` does not pickle, and a kept one would
-    make the actions depend on the calls before): :meth:`sampling_generator` makes a new one each
-    time, and :meth:`initial_noise` draws one ``[1, H, A]`` sample shared by the ``N`` rows.
+    make the actions depend on the calls before): :meth:`predict_chunk` makes a new one each call,
+    draws one ``[1, H, A]`` standard normal sample shared by the ``N`` rows, and hands both to the
+    head's ``sample(noise [N, H, A], features [N, dim], generator) -> [N, H, A]``; the result is
+    clipped to ``[-1, 1]``.
     """
 
     def __init__(self, cfg: OctoConfig, info: DataInfo):
         super().__init__(cfg, info)
         self.seed = int(cfg.seed)
 
-    def sampling_generator(self, device: torch.device) -> torch.Generator:
-        return torch.Generator(device=device).manual_seed(self.seed)
-
-    def initial_noise(self, n: int, shape: tuple[int, ...], generator: torch.Generator, device) -> torch.Tensor:
-        """``[n, *shape]`` standard normal noise, the same for every row."""
-        return torch.randn((1, *shape), generator=generator, device=device).expand(n, *shape)
+    @torch.no_grad()
+    def predict_chunk(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
+        features = self.backbone(history, history_valid, task_id, pixels)
+        n, shape = features.shape[0], (self.horizon, self.action_dim)
+        generator = torch.Generator(device=features.device).manual_seed(self.seed)
+        noise = torch.randn((1, *shape), generator=generator, device=features.device).expand(n, *shape)
+        return self.sample(noise, features, generator).clamp(-1.0, 1.0)
 
 
 def sinusoidal_embedding(t: torch.Tensor, dim: int, max_period: float = 10_000.0) -> torch.Tensor:
