@@ -4,6 +4,7 @@ Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.t
 """
 
 from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
+from .supervision import perturb_target
 from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
 from .weighting import (
     CAP_MODES,
@@ -43,6 +44,7 @@ __all__ = [
     "invert_weights",
     "mix_at",
     "perturb_mask",
+    "perturb_target",
     "random_weights",
     "segment_mean",
     "shuffle_weights",

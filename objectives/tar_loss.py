@@ -20,6 +20,7 @@ from torch import Tensor
 from torchrl.objectives import LossModule
 
 from .schedule import MixSchedule
+from .supervision import perturb_target
 from .weighting import (
     DEFAULT_EPS,
     DEFAULT_GAMMA,
@@ -147,8 +148,9 @@ class TARLoss(LossModule):
         Attributes:
             valid (NestedKey): bool ``[B, L]`` (or ``[B, L, 1]``) mask, ``True`` on real steps.
                 Defaults to ``("collector", "mask")``.
-            action (NestedKey): the expert action that the ``perturb_*`` controls corrupt.
-                Defaults to the inner loss's action key, else ``"action"``.
+            action (NestedKey): the supervision target that the ``perturb_*`` controls corrupt
+                (:mod:`~tar_rl.objectives.supervision`). Defaults to the inner loss's declared
+                ``target_key``, else its ``action`` key (torchrl's BC losses), else ``"action"``.
             event_valid (NestedKey, optional): bool ``[B, L, ...]`` mask over the event dims of
                 the per-step loss, ``True`` on real elements (e.g. the valid part of an action
                 chunk near the end of a trajectory). The per-step loss is the mean over the
@@ -217,9 +219,11 @@ class TARLoss(LossModule):
         self.nonfinite = nonfinite
         self.register_buffer("schedule_step", torch.zeros((), dtype=torch.long))
         self._generator = torch.Generator().manual_seed(seed)
-        inner_keys = getattr(inner, "tensor_keys", None)
-        if inner_keys is not None and hasattr(inner_keys, "action"):
-            self.set_keys(action=inner_keys.action)
+        target = getattr(inner, "target_key", None)
+        if target is None:
+            target = getattr(getattr(inner, "tensor_keys", None), "action", None)
+        if target is not None:
+            self.set_keys(action=target)
         extra_out = (["perturbed_fraction"] if self.weighting.perturb else []) + (["weights"] if return_weights else [])
         self.out_keys = [*self.out_keys, *extra_out]
 
@@ -277,7 +281,7 @@ class TARLoss(LossModule):
             chosen = perturb_mask(
                 clean, valid, fraction=self.perturb_fraction * mix, which=spec.perturb, generator=generator
             )
-            tensordict = self._perturb_actions(tensordict, chosen, generator)
+            tensordict = perturb_target(tensordict, self.tensor_keys.action, chosen, self.perturb_scale, generator)
             diagnostics["perturbed_fraction"] = chosen.sum() / valid.sum().clamp_min(1)
 
         out = self.inner(tensordict)
@@ -402,15 +406,3 @@ class TARLoss(LossModule):
         event_valid = event_valid.expand_as(loss)
         total = torch.where(event_valid, loss, torch.zeros((), dtype=loss.dtype, device=loss.device)).sum(event_dims)
         return total / event_valid.sum(event_dims).clamp_min(1).to(loss.dtype)
-
-    def _perturb_actions(
-        self, tensordict: TensorDictBase, chosen: Tensor, generator: torch.Generator | None
-    ) -> TensorDictBase:
-        """A shallow copy of the input whose expert action has Gaussian noise on the chosen steps."""
-        key = self.tensor_keys.action
-        action = tensordict.get(key)
-        noise = torch.randn(action.shape, generator=generator, dtype=torch.float32).to(action)
-        chosen = chosen.reshape(chosen.shape + (1,) * (action.ndim - chosen.ndim))
-        perturbed = tensordict.copy()
-        perturbed.set(key, action + self.perturb_scale * noise * chosen)
-        return perturbed

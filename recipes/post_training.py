@@ -18,7 +18,7 @@ import torch
 
 from tar_rl import runs
 from tar_rl.policies import DataInfo, Policy
-from tar_rl.policies.conditioning import TaskEncoder
+from tar_rl.policies.common import TaskEncoder
 from tar_rl.runs import CHECKPOINT, load_checkpoint
 
 from .config import default_config

@@ -1,6 +1,8 @@
-"""Chunk execution at inference (tar_rl.policies.chunking): temporal ensembling, open loop, history windows.
+"""What chunked heads share (tar_rl.policies.chunking): chunk execution at inference (temporal ensembling,
+open loop, history windows), the one ChunkLoss, the shared settings.
 
-Expected actions are computed by hand from a fake model whose predictions encode when they were made.
+Expected actions are computed by hand from a fake model whose predictions encode when they were made;
+expected losses from a fake model whose loss is a known function of its inputs.
 """
 
 from __future__ import annotations
@@ -12,7 +14,10 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
-from tar_rl.policies.chunking import ChunkedActor
+from tar_rl import TARLoss
+from tar_rl.objectives import perturb_target
+from tar_rl.policies import POLICIES
+from tar_rl.policies.chunking import ChunkedActor, ChunkedHeadConfig, ChunkLoss
 
 
 class _Clock(nn.Module):
@@ -119,3 +124,75 @@ def test_actions_are_clipped_and_a_pickled_copy_starts_fresh():
 def test_bad_settings_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
         ChunkedActor(_Clock(4), horizon=4, **kwargs)
+
+
+# -- The loss and the settings ----------------------------------------------------------------
+
+
+class _Chunker(nn.Module):
+    """Reads the current observation and the chunk; its chunk loss is ``observation + chunk`` per element
+    (observation ``[*B, 1]``), and its extras a scalar loss and a diagnostic. Records what it was given."""
+
+    loss_inputs = ("observation", "action_chunk", "action_chunk_valid", "valid")
+    loss_extras = ("loss_extra", "note")
+    reads_pixels = False
+
+    def __init__(self):
+        super().__init__()
+        self.seen = []
+
+    def chunk_loss(self, observation, action_chunk, action_chunk_valid=None, valid=None):
+        self.seen.append((action_chunk_valid, valid))
+        return observation[..., None] + action_chunk, {"loss_extra": torch.tensor(2.0), "note": torch.tensor(3.0)}
+
+
+def _segments():
+    return TensorDict(
+        {
+            "observation": torch.tensor([[[1.0], [2.0]]]),
+            "action_chunk": torch.tensor([[[[0.5], [0.25]], [[-1.0], [0.0]]]]),  # [1, 2, H=2, A=1]
+            "action_chunk_valid": torch.tensor([[[True, True], [True, False]]]),
+            ("collector", "mask"): torch.tensor([[True, True]]),
+        },
+        [1, 2],
+    )
+
+
+def test_chunk_loss_passes_what_the_model_lists_and_returns_its_loss_and_extras():
+    model = _Chunker()
+    loss = ChunkLoss(model, "loss_toy")
+    assert loss.in_keys == ["observation", "action_chunk", "action_chunk_valid", ("collector", "mask")]
+    assert loss.out_keys == ["loss_toy", "loss_extra", "note"] and loss.target_key == "action_chunk"
+    out = loss(_segments())
+    assert out["loss_toy"].tolist() == [[[[1.5], [1.25]], [[1.0], [2.0]]]]
+    assert float(out["loss_extra"]) == 2.0 and float(out["note"]) == 3.0
+    # the two masks are optional: absent, the model gets None
+    loss(_segments().exclude("action_chunk_valid", ("collector", "mask")))
+    assert model.seen[-1] == (None, None)
+    bad = _segments()
+    bad["action_chunk_valid"] = bad["action_chunk_valid"].float()
+    with pytest.raises(ValueError, match="action_chunk_valid"):
+        loss(bad)
+
+
+def test_the_objective_corrupts_the_declared_target():
+    objective = TARLoss(ChunkLoss(_Chunker(), "loss_toy"), "perturb_high", loss_key="loss_toy")
+    assert objective.tensor_keys.action == "action_chunk"
+    data = _segments()
+    chosen = torch.tensor([[False, True]])
+    out = perturb_target(data, "action_chunk", chosen, 0.5, torch.Generator().manual_seed(3))
+    noise = torch.randn(1, 2, 2, 1, generator=torch.Generator().manual_seed(3))
+    expected = data["action_chunk"].clone()
+    expected[0, 1] += 0.5 * noise[0, 1]  # the chosen step's whole chunk, nothing else
+    assert torch.equal(out["action_chunk"], expected)
+    assert torch.equal(data["action_chunk"], _segments()["action_chunk"])  # the input is not modified
+
+
+def test_every_chunked_head_takes_the_shared_settings_with_the_same_defaults():
+    shared = {"task_conditioning": "embedding", "execution": "ensemble", "execute_steps": 1, "ensemble_decay": 0.01}
+    shared |= {"normalize_obs": True, "observation": "state"}
+    chunked = [name for name in POLICIES if issubclass(POLICIES[name].config, ChunkedHeadConfig)]
+    assert chunked == ["act", "octo_linear", "octo_diffusion", "flow"]
+    for name in chunked:
+        cfg = POLICIES[name].config()
+        assert cfg.name == name and {k: getattr(cfg, k) for k in shared} == shared

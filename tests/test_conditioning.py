@@ -1,4 +1,4 @@
-"""Task conditioning (tar_rl.policies.conditioning): the instruction bag of words, by hand."""
+"""Task conditioning (tar_rl.policies.common): the instruction bag of words, by hand."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from tar_rl.collectors.tasks import INSTRUCTIONS, TASKS
-from tar_rl.policies.conditioning import TaskEncoder, instruction_tokens
+from tar_rl.policies.common import TaskEncoder, instruction_tokens
 
 
 def test_instruction_tokens_spell_each_sentence():

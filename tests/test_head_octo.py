@@ -20,18 +20,15 @@ from tensordict import TensorDict
 
 from tar_rl import TARLoss
 from tar_rl.policies import POLICIES, DataInfo, build_policy
-from tar_rl.policies.flow import FlowConfig, FlowPolicy, euler_integrate, sample_flow_time
-from tar_rl.policies.octo import (
-    OctoBackbone,
-    OctoConfig,
+from tar_rl.policies.diffusion import (
     OctoDiffusion,
     OctoDiffusionConfig,
-    OctoLinear,
-    OctoLinearConfig,
     cosine_alpha_bar,
     ddim_sample,
     sampling_timesteps,
 )
+from tar_rl.policies.flow import FlowConfig, FlowPolicy, euler_integrate, sample_flow_time
+from tar_rl.policies.octo import OctoBackbone, OctoConfig, OctoLinear, OctoLinearConfig
 
 HEADS = ("octo_linear", "octo_diffusion", "flow")
 H, K, A, D = 4, 3, 4, 39

@@ -7,7 +7,16 @@ A head gives the recipe two things (:class:`Policy`):
   (``[..., 4]``). The evaluator collectors call it on ``[N]`` batches; it must be picklable.
 * ``loss``: a TorchRL ``LossModule`` built with ``reduction="none"`` whose one ``loss_*`` output is
   the per-step loss ``[B, L]`` or ``[B, L, ...]`` on a ``[B, L]`` segment batch. Heads never
-  average over the segment axis: ``tar_rl.TARLoss`` owns that reduction.
+  average over the segment axis: ``tar_rl.TARLoss`` owns that reduction. A loss names its
+  supervision target by a ``target_key`` (the chunked heads' :class:`ChunkLoss`: ``action_chunk``)
+  or, as torchrl's BC losses do, by its ``action`` key: that is the entry the objective's
+  supervision transforms (the ``perturb_*`` controls) corrupt.
+
+The modules: :mod:`.common` (inputs every head shares: observation normalisation, task
+conditioning, the image encoder), :mod:`.chunking` (what every chunked head shares: settings,
+:class:`ChunkLoss`, the inference actor), and one module per head family: :mod:`.mlp`,
+:mod:`.act`, :mod:`.octo` (the Octo-style backbone and ``octo_linear``), :mod:`.diffusion`
+(``octo_diffusion``), :mod:`.flow`.
 
 Every head is registered in :data:`POLICIES` with its config dataclass (the fields a recipe may
 set, with defaults) and its builder ``build(config, info) -> Policy``. ``info``
@@ -30,9 +39,10 @@ from tar_rl.registry import Registry
 
 __all__ = [
     "POLICIES",
-    "ACTChunkLoss",
     "ACTConfig",
     "ACTModel",
+    "ChunkLoss",
+    "ChunkedHeadConfig",
     "DataInfo",
     "FlowConfig",
     "MLPConfig",
@@ -172,8 +182,14 @@ def build_policy(cfg, info: DataInfo) -> Policy:
     return spec.build(cfg, info)
 
 
-# The heads register themselves on import; importing the package registers them all.
-from .act import ACTChunkLoss, ACTConfig, ACTModel  # noqa: E402
+# The heads register themselves on import, in this order (the order of listings and messages).
+# isort: off
+from .mlp import MLPConfig, MLPPolicy  # noqa: E402
+from .act import ACTConfig, ACTModel  # noqa: E402
+from .octo import OctoConfig, OctoLinearConfig  # noqa: E402
+from .diffusion import OctoDiffusionConfig  # noqa: E402
 from .flow import FlowConfig  # noqa: E402
-from .mlp import MLPConfig, MLPPolicy, ObsNorm  # noqa: E402
-from .octo import OctoConfig, OctoDiffusionConfig, OctoLinearConfig  # noqa: E402
+
+# isort: on
+from .chunking import ChunkedHeadConfig, ChunkLoss  # noqa: E402
+from .common import ObsNorm  # noqa: E402

@@ -10,14 +10,14 @@ observation and the task:
 * **Encoder-decoder**: a transformer encoder over three tokens ``[z, obs, task]`` (learned
   positions), then a transformer decoder whose ``H`` learned query embeddings cross-attend to
   the encoded tokens; a linear layer maps each query's output to an action: ``[H, A]``.
-* **Image observations** (``observation="image"``, :mod:`tar_rl.policies.vision`): the state
+* **Image observations** (``observation="image"``, :mod:`tar_rl.policies.common`): the state
   tokens carry the proprioceptive state only and the encoder reads a fourth token, the current
   camera image through the conv encoder (ACT reads camera features as tokens too); the CVAE
   encoder sees the proprioceptive state and the actions, as in ACT, not the image.
 * **Inference**: ``z`` is the prior mean, zero; the CVAE encoder is not run, so the chunk is a
   deterministic function of the observation and the task (in ``eval()`` mode, without dropout).
 
-The loss (:class:`ACTChunkLoss`) returns
+The loss (:meth:`ACTModel.chunk_loss`, through :class:`~tar_rl.policies.chunking.ChunkLoss`) returns
 
 * ``loss_chunk``: the L1 error of every chunk element, ``[*B, H, A]``, zero where the chunk entry
   is padding (``action_chunk_valid`` False). With ``Policy.event_valid = "action_chunk_valid"``,
@@ -25,7 +25,13 @@ The loss (:class:`ACTChunkLoss`) returns
   the action dims (paper Sec. II-D: a chunk's loss is one step's loss);
 * ``loss_kl``: a scalar, ``kl_weight`` times the mean over the valid steps (``("collector",
   "mask")`` True) of ``KL(q(z | a, o) || N(0, I))`` summed over the latent dims; ``TARLoss`` adds
-  it unweighted (``aux_loss_kl``).
+  it unweighted (``aux_loss_kl``); and ``kl``, the unweighted mean KL, detached (a diagnostic).
+
+Written here rather than reusing ``torchrl.objectives.ACTLoss``: with ``reduction="none"`` torchrl's
+loss averages each chunk over all its entries (padding past the episode's end included), returns
+the per-sample KL inside the main loss entry and ignores the validity mask; TAR needs the chunk loss
+per element with its padding left to ``TARLoss``'s ``event_valid`` average, and the KL term kept out
+of the per-step weighting.
 
 Inference goes through :class:`tar_rl.policies.chunking.ChunkedActor` (temporal ensembling by
 default, or open-loop execution of the chunk's first ``execute_steps`` actions).
@@ -37,22 +43,17 @@ import math
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase
-from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.objectives import LossModule
 
 from . import DataInfo, Policy, PolicySpec, register_policy
-from .chunking import EXECUTIONS, ChunkedActor
-from .conditioning import TASK_CONDITIONING, TaskEncoder
-from .mlp import ObsNorm
-from .vision import PROPRIO_DIMS, image_encoder
+from .chunking import ChunkedHeadConfig, chunked_policy
+from .common import PROPRIO_DIMS, ObsNorm, TaskEncoder, image_encoder
 
-__all__ = ["ACTChunkLoss", "ACTConfig", "ACTModel", "gaussian_kl"]
+__all__ = ["ACTConfig", "ACTModel", "gaussian_kl"]
 
 
 @dataclass
-class ACTConfig:
+class ACTConfig(ChunkedHeadConfig):
     """The ACT head: a CVAE transformer predicting chunks of ``data.chunk_horizon`` actions.
 
     The defaults keep ACT's structure at a size that trains on CPU: a step on ``[64, 16]``
@@ -63,8 +64,9 @@ class ACTConfig:
     32, dropout 0.1, KL weight 10. Measured here (torch 2.13 CPU, one thread, shared 2-core
     machine): a step of the defaults on ``[64, 16]`` segments takes about 10 times the MLP head's.
 
+    Besides the chunked heads' settings (:class:`~tar_rl.policies.chunking.ChunkedHeadConfig`):
+
     Attributes:
-        name: registry name.
         dim: width of every token (transformer model dimension); divisible by ``heads``.
         heads: attention heads per layer.
         enc_layers: layers of the encoder over ``[z, obs, task]``.
@@ -75,15 +77,6 @@ class ACTConfig:
         kl_weight: weight of the KL term (``loss_kl``), ACT's beta.
         dropout: dropout in the transformer layers (training only). ACT uses 0.1; the default
             is 0 because on CPU drawing the dropout masks took about 30% of a training step.
-        execution: ``ensemble`` (ACT's temporal ensembling, a new chunk every step) or
-            ``open_loop`` (``execute_steps`` actions of each chunk, then a new one).
-        execute_steps: actions executed per chunk with ``open_loop`` (``1 .. H``).
-        ensemble_decay: ``m`` of the temporal ensemble's weights ``exp(-m * i)`` (ACT: 0.01).
-        task_conditioning: the task token: ``embedding`` (learned, one per task) or
-            ``instruction`` (the task's instruction words).
-        normalize_obs: standardise observations with the training data's statistics.
-        observation: ``state`` or ``image`` (the current camera image as an encoder token, plus
-            the proprioceptive state; needs a dataset with images, ``data.image_size > 0``).
     """
 
     name: str = "act"
@@ -96,12 +89,6 @@ class ACTConfig:
     latent_dim: int = 16
     kl_weight: float = 10.0
     dropout: float = 0.0
-    execution: str = "ensemble"
-    execute_steps: int = 1
-    ensemble_decay: float = 0.01
-    task_conditioning: str = "embedding"
-    normalize_obs: bool = True
-    observation: str = "state"
 
 
 def _check_config(cfg: ACTConfig, info: DataInfo) -> None:
@@ -115,14 +102,9 @@ def _check_config(cfg: ACTConfig, info: DataInfo) -> None:
         raise ValueError(f"policy.kl_weight must be a finite number >= 0, got {cfg.kl_weight!r}")
     if not 0 <= cfg.dropout < 1:
         raise ValueError(f"policy.dropout must lie in [0, 1), got {cfg.dropout!r}")
-    if cfg.execution not in EXECUTIONS:
-        raise ValueError(f"policy.execution must be one of {list(EXECUTIONS)}, got {cfg.execution!r}")
-    if cfg.task_conditioning not in TASK_CONDITIONING:
-        raise ValueError(
-            f"policy.task_conditioning must be one of {list(TASK_CONDITIONING)}, got {cfg.task_conditioning!r}"
-        )
     if info.chunk_horizon < 1:
         raise ValueError(f"the chunk horizon (data.chunk_horizon) must be >= 1, got {info.chunk_horizon}")
+    cfg.check_chunking(info.chunk_horizon)
 
 
 def gaussian_kl(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
@@ -139,13 +121,31 @@ class ACTModel(nn.Module):
     Args:
         cfg: the head's settings.
         info: the data's dimensions, chunk horizon ``H`` and observation statistics.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tar_rl.policies import DataInfo
+        >>> from tar_rl.policies.chunking import ChunkLoss
+        >>> model = ACTModel(ACTConfig(dim=16, heads=2), DataInfo(obs_dim=5, action_dim=2, n_tasks=3, chunk_horizon=4))
+        >>> data = TensorDict({"observation": torch.randn(2, 6, 5), "task_id": torch.zeros(2, 6, dtype=torch.long),
+        ...     "action_chunk": torch.zeros(2, 6, 4, 2), "action_chunk_valid": torch.ones(2, 6, 4, dtype=torch.bool)},
+        ...     [2, 6])
+        >>> out = ChunkLoss(model)(data)
+        >>> out["loss_chunk"].shape, out["loss_kl"].shape
+        (torch.Size([2, 6, 4, 2]), torch.Size([]))
     """
+
+    # what ChunkLoss passes to chunk_loss, and the scalars it returns besides the chunk loss
+    loss_inputs = ("observation", "task_id", "action_chunk", "action_chunk_valid", "valid")
+    loss_extras = ("loss_kl", "kl")
 
     def __init__(self, cfg: ACTConfig, info: DataInfo):
         super().__init__()
         _check_config(cfg, info)
         d, self.horizon, self.action_dim = cfg.dim, int(info.chunk_horizon), info.action_dim
         self.latent_dim = cfg.latent_dim
+        self.kl_weight = float(cfg.kl_weight)
         self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std) if cfg.normalize_obs else nn.Identity()
         self.image = image_encoder(cfg.observation, info.image_size, d)
         self.obs_width = PROPRIO_DIMS if self.image is not None else info.obs_dim
@@ -256,6 +256,42 @@ class ACTModel(nn.Module):
             logvar.reshape(*batch, self.latent_dim),
         )
 
+    def chunk_loss(
+        self,
+        observation: torch.Tensor,
+        task_id: torch.Tensor,
+        action_chunk: torch.Tensor,
+        action_chunk_valid: torch.Tensor | None = None,
+        valid: torch.Tensor | None = None,
+        pixels: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """ACT's training loss, unreduced over the batch (module docstring).
+
+        Args:
+            observation, task_id, action_chunk, pixels: as in :meth:`forward`; the chunk is the
+                target and the CVAE encoder's input.
+            action_chunk_valid: ``[*B, H]`` bool, True on real chunk entries (``None``: all).
+            valid: ``[*B]`` bool, True on real steps, the KL mean's mask (``None``: every step).
+
+        Returns:
+            ``|pred - target|`` ``[*B, H, A]`` (0 on padded chunk entries) and the scalars
+            ``loss_kl`` (``kl_weight`` times the mean KL over valid steps) and ``kl`` (the
+            unweighted mean KL, detached).
+        """
+        batch = action_chunk.shape[:-2]
+        device = action_chunk.device
+        if action_chunk_valid is None:
+            action_chunk_valid = torch.ones(action_chunk.shape[:-1], dtype=torch.bool, device=device)
+        valid = torch.ones(batch, dtype=torch.bool, device=device) if valid is None else valid.reshape(batch)
+        pred, mu, logvar = self(observation, task_id, action_chunk, action_chunk_valid, pixels)
+        error = (pred.float() - action_chunk.float()).abs()
+        error = torch.where(
+            action_chunk_valid[..., None], error, torch.zeros((), dtype=error.dtype, device=error.device)
+        )
+        kl = gaussian_kl(mu.float(), logvar.float())
+        kl = torch.where(valid, kl, torch.zeros((), dtype=kl.dtype, device=kl.device)).sum() / valid.sum().clamp_min(1)
+        return error, {"loss_kl": self.kl_weight * kl, "kl": kl.detach()}
+
     def predict_chunk(
         self,
         history: torch.Tensor,
@@ -276,143 +312,9 @@ class ACTModel(nn.Module):
         return self.decode(obs, task_id, z, pixels)
 
 
-class ACTChunkLoss(LossModule):
-    """ACT's training loss, unreduced over the batch: per-element chunk L1 and a scalar KL term.
-
-    Written here rather than reusing ``torchrl.objectives.ACTLoss``: with ``reduction="none"``
-    torchrl's loss averages each chunk over all its entries (padding past the episode's end
-    included), returns the per-sample KL inside the main loss entry and ignores the validity
-    mask; TAR needs the chunk loss per element with its padding left to ``TARLoss``'s
-    ``event_valid`` average, and the KL term kept out of the per-step weighting.
-
-    Args:
-        model (ACTModel): the network (shared with the inference actor).
-
-    Keyword Args:
-        kl_weight (float): the KL term's weight (ACT: 10).
-
-    Input: a TensorDict of batch shape ``[*B]`` (``[B, L]`` segments in training) with the keys
-    of :class:`_AcceptedKeys`. It is not modified.
-
-    Output keys: ``loss_chunk`` ``[*B, H, A]`` (``|pred - target|``, 0 on padded chunk entries),
-    ``loss_kl`` (scalar, ``kl_weight`` times the mean KL over valid steps), and the detached
-    diagnostic ``kl`` (the unweighted mean KL).
-
-    Examples:
-        >>> import torch
-        >>> from tensordict import TensorDict
-        >>> from tar_rl.policies import DataInfo
-        >>> model = ACTModel(ACTConfig(dim=16, heads=2), DataInfo(obs_dim=5, action_dim=2, n_tasks=3, chunk_horizon=4))
-        >>> data = TensorDict({"observation": torch.randn(2, 6, 5), "task_id": torch.zeros(2, 6, dtype=torch.long),
-        ...     "action_chunk": torch.zeros(2, 6, 4, 2), "action_chunk_valid": torch.ones(2, 6, 4, dtype=torch.bool)},
-        ...     [2, 6])
-        >>> out = ACTChunkLoss(model)(data)
-        >>> out["loss_chunk"].shape, out["loss_kl"].shape
-        (torch.Size([2, 6, 4, 2]), torch.Size([]))
-    """
-
-    @dataclass
-    class _AcceptedKeys:
-        """Configurable input keys.
-
-        Attributes:
-            observation (NestedKey): ``[*B, D]`` observations. Defaults to ``"observation"``.
-            task_id (NestedKey): ``[*B]`` int64 task ids. Defaults to ``"task_id"``.
-            action_chunk (NestedKey): ``[*B, H, A]`` expert chunks (the target, and the CVAE
-                encoder's input). Defaults to ``"action_chunk"``.
-            action_chunk_valid (NestedKey): ``[*B, H]`` bool, True on real chunk entries.
-                Defaults to ``"action_chunk_valid"``.
-            valid (NestedKey): ``[*B]`` bool, True on real steps (the KL mean's mask; absent: every
-                step). Defaults to ``("collector", "mask")``.
-            pixels (NestedKey): ``[*B, 3, S, S]`` uint8 images, read only by a model with image
-                observations. Defaults to ``"pixels"``.
-        """
-
-        observation: NestedKey = "observation"
-        task_id: NestedKey = "task_id"
-        action_chunk: NestedKey = "action_chunk"
-        action_chunk_valid: NestedKey = "action_chunk_valid"
-        valid: NestedKey = ("collector", "mask")
-        pixels: NestedKey = "pixels"
-
-        @property
-        def action(self) -> NestedKey:
-            """The expert target, for ``TARLoss``'s ``perturb_*`` controls: the action chunk."""
-            return self.action_chunk
-
-    tensor_keys: _AcceptedKeys
-    default_keys = _AcceptedKeys
-    out_keys = ["loss_chunk", "loss_kl", "kl"]
-    reduction = "none"
-
-    model: ACTModel
-
-    def __init__(self, model: ACTModel, *, kl_weight: float = 10.0):
-        if not (math.isfinite(kl_weight) and kl_weight >= 0):
-            raise ValueError(f"policy.kl_weight must be a finite number >= 0, got {kl_weight!r}")
-        super().__init__()
-        self.model = model
-        self.kl_weight = float(kl_weight)
-
-    @property
-    def functional(self) -> bool:
-        return False
-
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        k = self.tensor_keys
-        keys = [k.observation, k.task_id, k.action_chunk, k.action_chunk_valid, k.valid]
-        return keys + ([k.pixels] if self.model.reads_pixels else [])
-
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        """The unreduced chunk loss and the scalar KL term (class docstring)."""
-        k = self.tensor_keys
-        target = tensordict.get(k.action_chunk)
-        chunk_valid = tensordict.get(k.action_chunk_valid)
-        batch = tensordict.batch_size
-        if chunk_valid.dtype != torch.bool or chunk_valid.shape != target.shape[:-1]:
-            raise ValueError(
-                f"{k.action_chunk_valid!r} must be torch.bool of shape {list(target.shape[:-1])}, "
-                f"got {chunk_valid.dtype} {list(chunk_valid.shape)}"
-            )
-        valid = tensordict.get(k.valid, None)
-        if valid is None:
-            valid = torch.ones(batch, dtype=torch.bool, device=target.device)
-        valid = valid.reshape(batch)
-        pixels = tensordict.get(k.pixels) if self.model.reads_pixels else None
-        pred, mu, logvar = self.model(
-            tensordict.get(k.observation), tensordict.get(k.task_id), target, chunk_valid, pixels
-        )
-        error = (pred.float() - target.float()).abs()
-        error = torch.where(chunk_valid[..., None], error, torch.zeros((), dtype=error.dtype, device=error.device))
-        kl = gaussian_kl(mu.float(), logvar.float())
-        kl = torch.where(valid, kl, torch.zeros((), dtype=kl.dtype, device=kl.device)).sum() / valid.sum().clamp_min(1)
-        return TensorDict({"loss_chunk": error, "loss_kl": self.kl_weight * kl, "kl": kl.detach()}, batch_size=[])
-
-
 def _build_act(cfg: ACTConfig, info: DataInfo) -> Policy:
-    model = ACTModel(cfg, info)
-    actor = ChunkedActor(
-        model,
-        horizon=info.chunk_horizon,
-        history=1,
-        execution=cfg.execution,
-        execute_steps=cfg.execute_steps,
-        ensemble_decay=cfg.ensemble_decay,
-        images=model.reads_pixels,
-    )
-    keys = ("observation", "task_id", "action", "action_chunk", "action_chunk_valid")
-    return Policy(
-        actor=actor,
-        loss=ACTChunkLoss(model, kl_weight=cfg.kl_weight),
-        # "action" is not read by the loss; the recipe's weight recording plots its gripper entry.
-        keys=keys + (("pixels",) if model.reads_pixels else ()),
-        event_valid="action_chunk_valid",
-        loss_key="loss_chunk",
-    )
+    # ACT reads the current observation only: a window of one
+    return chunked_policy(ACTModel(cfg, info), cfg, info, "loss_chunk", history=1)
 
 
 register_policy(

@@ -1,10 +1,26 @@
-"""Inference for heads that predict action chunks and read a window of past observations.
+"""What every chunked head shares: its settings, its training loss and its inference actor.
 
-A chunked head predicts the next ``H`` actions from the current observation (or the last ``K``
-observations) and the task. The evaluator collectors call the actor once per environment step on
-an ``[N]`` batch of slots, with ``is_init`` (``[N, 1]`` bool, TorchRL's ``InitTracker``) True on
-the first step of each slot's rollout. :class:`ChunkedActor` turns chunks into one action per step
-and keeps, per slot, what that needs across calls:
+A chunked head predicts the next ``H`` actions (a chunk) from the current observation (or the last
+``K`` observations) and the task. Three parts serve every such head (``act``, ``octo_linear``,
+``octo_diffusion``, ``flow``):
+
+**Settings** (:class:`ChunkedHeadConfig`): the task conditioning, the observation kind and its
+normalisation, and how chunks are executed at inference, defined and validated once; each head's
+config adds its own fields.
+
+**Training loss** (:class:`ChunkLoss`): one TorchRL ``LossModule`` for every chunked head. The
+head's model says which entries it reads (``loss_inputs``) and computes, from them, the loss of
+every chunk element ``[B, L, H, A]`` (never reduced) plus optional scalars (``loss_extras``, e.g.
+ACT's KL term ``loss_kl`` and its diagnostic ``kl``). Its supervision target is the expert chunk
+``action_chunk`` (:attr:`ChunkLoss.target_key`): the objective's supervision transforms (the
+``perturb_*`` controls of ``tar_rl.TARLoss``) corrupt that entry. What a padded chunk entry (past
+the episode's end, ``action_chunk_valid`` False) contributes is the model's choice; ``TARLoss``
+averages each step's loss over the valid entries only (``Policy.event_valid``).
+
+**Inference** (:class:`ChunkedActor`): the evaluator collectors call the actor once per environment
+step on an ``[N]`` batch of slots, with ``is_init`` (``[N, 1]`` bool, TorchRL's ``InitTracker``)
+True on the first step of each slot's rollout. The actor turns chunks into one action per step and
+keeps, per slot, what that needs across calls:
 
 * the observation window ``[N, K, D]`` (oldest first, the current observation last) and its
   validity ``[N, K]``: on a rollout's first step only the last entry is real, as in the training
@@ -27,15 +43,182 @@ dropped when the batch size changes.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.objectives import LossModule
 
-__all__ = ["EXECUTIONS", "ChunkedActor"]
+from . import DataInfo, Policy
+from .common import TASK_CONDITIONING
+
+__all__ = ["EXECUTIONS", "ChunkLoss", "ChunkedActor", "ChunkedHeadConfig", "check_execution", "chunked_policy"]
 
 EXECUTIONS = ("ensemble", "open_loop")
+
+
+# -- Settings ------------------------------------------------------------------------------------
+
+
+def check_execution(execution: str, execute_steps: int, ensemble_decay: float, horizon: int) -> None:
+    """Raise ``ValueError`` naming the setting for a bad chunk execution (``horizon``: the chunk length ``H``)."""
+    if execution not in EXECUTIONS:
+        raise ValueError(f"policy.execution must be one of {list(EXECUTIONS)}, got {execution!r}")
+    if execution == "open_loop" and not 1 <= execute_steps <= horizon:
+        raise ValueError(f"policy.execute_steps must lie in 1..{horizon} (the chunk horizon), got {execute_steps}")
+    if not (math.isfinite(ensemble_decay) and ensemble_decay >= 0):
+        raise ValueError(f"policy.ensemble_decay must be a finite number >= 0, got {ensemble_decay}")
+
+
+@dataclass
+class ChunkedHeadConfig:
+    """Settings every chunked head has: inputs and chunk execution; a head's config inherits them and adds its own.
+
+    Attributes:
+        name: registry name (each head's config sets it).
+        task_conditioning: the task token: ``embedding`` (learned, one per task) or ``instruction``
+            (the words of the task's instruction, :class:`~tar_rl.policies.common.TaskEncoder`).
+        execution: inference: ``ensemble`` (ACT's temporal ensembling, a new chunk every step) or
+            ``open_loop`` (``execute_steps`` actions of each chunk, then a new one).
+        execute_steps: actions executed per chunk with ``open_loop`` (``1 .. H``).
+        ensemble_decay: ``m`` of the temporal ensemble's weights ``exp(-m * i)`` (ACT: 0.01).
+        normalize_obs: standardise observations with the training data's statistics.
+        observation: ``state`` or ``image`` (the current camera image, read as one more token,
+            plus the proprioceptive state; needs a dataset with images, ``data.image_size > 0``;
+            see :mod:`tar_rl.policies.common`).
+    """
+
+    name: str
+    task_conditioning: str = "embedding"
+    execution: str = "ensemble"
+    execute_steps: int = 1
+    ensemble_decay: float = 0.01
+    normalize_obs: bool = True
+    observation: str = "state"
+
+    def check_chunking(self, horizon: int) -> None:
+        """Raise ``ValueError`` naming the setting for a bad shared setting (``horizon``: the chunk length ``H``)."""
+        if self.task_conditioning not in TASK_CONDITIONING:
+            raise ValueError(
+                f"policy.task_conditioning must be one of {list(TASK_CONDITIONING)}, got {self.task_conditioning!r}"
+            )
+        check_execution(self.execution, self.execute_steps, self.ensemble_decay, horizon)
+
+
+# -- Training loss -------------------------------------------------------------------------------
+
+
+class ChunkLoss(LossModule):
+    """Per-step loss of a chunked head: the loss of every chunk element ``[*B, H, A]``, never reduced.
+
+    The model (shared with the inference actor) provides:
+
+    * ``loss_inputs``: the names of the accepted keys (below) it reads, passed to ``chunk_loss`` as
+      keyword arguments of those names; ``action_chunk_valid`` and ``valid`` are optional in the
+      input (absent: ``None``, every entry and step real);
+    * ``reads_pixels``: with image observations, ``pixels`` is read and passed as well;
+    * ``chunk_loss(**inputs) -> (loss, extras)``: ``loss`` ``[*B, H, A]`` and ``extras``, a dict of
+      scalars named in ``loss_extras``: ``loss_*`` ones are losses ``TARLoss`` adds unweighted,
+      the others detached diagnostics.
+
+    ``action_chunk_valid``, when present, must be ``torch.bool`` of the chunk's shape without the
+    action dim.
+
+    Args:
+        model: the head's network.
+        loss_name: the per-step output entry, ``loss_<something>`` (``Policy.loss_key`` names it
+            when the model has ``loss_*`` extras).
+
+    Input: a TensorDict of batch shape ``[*B]`` (``[B, L]`` segments in training) with the keys the
+    model reads. It is not modified.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable input keys.
+
+        Attributes:
+            observation (NestedKey): ``[*B, D]`` current observations. Defaults to ``"observation"``.
+            observation_history (NestedKey): ``[*B, K, D]`` observation window, oldest first.
+                Defaults to ``"observation_history"``.
+            observation_history_valid (NestedKey): ``[*B, K]`` bool, True on real observations.
+                Defaults to ``"observation_history_valid"``.
+            task_id (NestedKey): ``[*B]`` int64 task ids. Defaults to ``"task_id"``.
+            action_chunk (NestedKey): ``[*B, H, A]`` the next ``H`` expert actions, the supervision
+                target. Defaults to ``"action_chunk"``.
+            action_chunk_valid (NestedKey): ``[*B, H]`` bool, True on chunk entries that are real
+                steps (a prefix). Defaults to ``"action_chunk_valid"``.
+            valid (NestedKey): ``[*B]`` bool, True on real steps. Defaults to ``("collector", "mask")``.
+            pixels (NestedKey): ``[*B, 3, S, S]`` uint8 camera images, read by models with image
+                observations only. Defaults to ``"pixels"``.
+        """
+
+        observation: NestedKey = "observation"
+        observation_history: NestedKey = "observation_history"
+        observation_history_valid: NestedKey = "observation_history_valid"
+        task_id: NestedKey = "task_id"
+        action_chunk: NestedKey = "action_chunk"
+        action_chunk_valid: NestedKey = "action_chunk_valid"
+        valid: NestedKey = ("collector", "mask")
+        pixels: NestedKey = "pixels"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    reduction = "none"
+    OPTIONAL = ("action_chunk_valid", "valid")
+
+    def __init__(self, model: nn.Module, loss_name: str = "loss_chunk"):
+        if not loss_name.startswith("loss_"):
+            raise ValueError(f"the loss entry must start with 'loss_', got {loss_name!r}")
+        super().__init__()
+        self.model = model
+        self.loss_name = loss_name
+
+    @property
+    def functional(self) -> bool:
+        return False
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def target_key(self) -> NestedKey:
+        """The supervision target: the entry the objective's supervision transforms corrupt."""
+        return self.tensor_keys.action_chunk
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        k = self.tensor_keys
+        keys = [getattr(k, name) for name in self.model.loss_inputs]
+        return keys + ([k.pixels] if self.model.reads_pixels else [])
+
+    @property
+    def out_keys(self) -> list[str]:
+        return [self.loss_name, *self.model.loss_extras]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        """The model's unreduced chunk loss and its scalar extras (class docstring)."""
+        k = self.tensor_keys
+        inputs = {}
+        for name in self.model.loss_inputs:
+            key = getattr(k, name)
+            inputs[name] = tensordict.get(key, None) if name in self.OPTIONAL else tensordict.get(key)
+        chunk, chunk_valid = inputs.get("action_chunk"), inputs.get("action_chunk_valid")
+        if chunk_valid is not None and (chunk_valid.dtype != torch.bool or chunk_valid.shape != chunk.shape[:-1]):
+            raise ValueError(
+                f"{k.action_chunk_valid!r} must be torch.bool of shape {list(chunk.shape[:-1])}, "
+                f"got {chunk_valid.dtype} {list(chunk_valid.shape)}"
+            )
+        if self.model.reads_pixels:
+            inputs["pixels"] = tensordict.get(k.pixels)
+        loss, extras = self.model.chunk_loss(**inputs)
+        return TensorDict({self.loss_name: loss, **extras}, batch_size=[])
+
+
+# -- Inference -----------------------------------------------------------------------------------
 
 
 class ChunkedActor(TensorDictModuleBase):
@@ -72,14 +255,9 @@ class ChunkedActor(TensorDictModuleBase):
         images: bool = False,
     ):
         super().__init__()
-        if execution not in EXECUTIONS:
-            raise ValueError(f"policy.execution must be one of {list(EXECUTIONS)}, got {execution!r}")
         if horizon < 1 or history < 1:
             raise ValueError(f"the chunk horizon and the history must be >= 1, got {horizon} and {history}")
-        if execution == "open_loop" and not 1 <= execute_steps <= horizon:
-            raise ValueError(f"policy.execute_steps must lie in 1..{horizon} (the chunk horizon), got {execute_steps}")
-        if not (math.isfinite(ensemble_decay) and ensemble_decay >= 0):
-            raise ValueError(f"policy.ensemble_decay must be a finite number >= 0, got {ensemble_decay}")
+        check_execution(execution, execute_steps, ensemble_decay, horizon)
         self.model = model
         self.horizon, self.history = int(horizon), int(history)
         self.execution, self.execute_steps = execution, int(execute_steps)
@@ -173,3 +351,36 @@ class ChunkedActor(TensorDictModuleBase):
         action = self._chunk[torch.arange(n, device=init.device), self._age]
         self._age = self._age + 1
         return action
+
+
+# -- The policy ----------------------------------------------------------------------------------
+
+
+def chunked_policy(model: nn.Module, cfg: ChunkedHeadConfig, info: DataInfo, loss_name: str, history: int) -> Policy:
+    """The :class:`Policy` of a chunked head: a :class:`ChunkedActor` and a :class:`ChunkLoss` sharing ``model``.
+
+    ``history``: the observation window ``K`` the model reads (1: the current observation only).
+    """
+    images = bool(model.reads_pixels)
+    actor = ChunkedActor(
+        model,
+        horizon=info.chunk_horizon,
+        history=history,
+        execution=cfg.execution,
+        execute_steps=cfg.execute_steps,
+        ensemble_decay=cfg.ensemble_decay,
+        images=images,
+    )
+    loss = ChunkLoss(model, loss_name)
+    k = loss.tensor_keys
+    data = [key for key in loss.in_keys if key not in (k.valid, k.pixels)]
+    # "action" is not read by the loss: the recipe's weight recording plots its gripper dimension.
+    keys = (*data, "action", *([k.pixels] if images else []))
+    several = any(name.startswith("loss_") for name in model.loss_extras)
+    return Policy(
+        actor=actor,
+        loss=loss,
+        keys=keys,
+        event_valid=k.action_chunk_valid,
+        loss_key=loss_name if several else None,
+    )

@@ -16,7 +16,7 @@ action expert, Black et al. 2024) predicts a velocity field:
   or ``uniform`` (``U(0.001, 1)``). Per-step loss: the velocity regression squared error per chunk
   element ``[B, L, H, A]``. ``tau`` and the noise come from torch's global RNG.
 * inference: start from ``x_1 ~ N(0, I)`` (drawn at every call from a generator seeded with
-  ``seed`` and shared by the batch's rows, as in ``tar_rl.policies.octo``: the chunk is a
+  ``seed`` and shared by the batch's rows, :class:`~tar_rl.policies.octo.SeededSampling`: the chunk is a
   deterministic function of the row's inputs and the seed) and take ``sample_steps`` Euler steps
   ``x <- x - v(x, tau) / sample_steps`` from ``tau = 1`` to 0; the result is clipped to ``[-1, 1]``.
 """
@@ -29,15 +29,8 @@ import torch
 from torch import nn
 
 from . import DataInfo, Policy, PolicySpec, register_policy
-from .octo import (
-    OctoBackbone,
-    OctoConfig,
-    SeededSampling,
-    TransformerBlock,
-    _chunk_shapes,
-    chunked_policy,
-    sinusoidal_embedding,
-)
+from .chunking import chunked_policy
+from .octo import OctoConfig, SeededSampling, TransformerBlock, check_chunk_shape, sinusoidal_embedding
 
 __all__ = ["TIME_DISTRIBUTIONS", "FlowConfig", "FlowPolicy", "euler_integrate", "sample_flow_time"]
 
@@ -93,7 +86,6 @@ class FlowPolicy(SeededSampling):
     T_EMBED = 32
 
     def __init__(self, cfg: FlowConfig, info: DataInfo):
-        super().__init__(cfg.seed)
         if cfg.sample_steps < 1:
             raise ValueError(f"policy.sample_steps must be >= 1, got {cfg.sample_steps}")
         if cfg.time_distribution not in TIME_DISTRIBUTIONS:
@@ -105,9 +97,8 @@ class FlowPolicy(SeededSampling):
                 f"policy.expert_dim must be >= 1 and divisible by policy.heads ({cfg.heads}), and "
                 f"policy.expert_layers >= 1; got {cfg.expert_dim} and {cfg.expert_layers}"
             )
-        self.horizon, self.action_dim = int(info.chunk_horizon), int(info.action_dim)
+        super().__init__(cfg, info)
         self.sample_steps, self.time_distribution = int(cfg.sample_steps), cfg.time_distribution
-        self.backbone = OctoBackbone(cfg, info)
         e = int(cfg.expert_dim)
         self.context = nn.Linear(int(cfg.dim), e)
         self.action_in = nn.Linear(self.action_dim + self.T_EMBED, e)
@@ -130,7 +121,7 @@ class FlowPolicy(SeededSampling):
 
     def step_loss(self, history, history_valid, task_id, chunk, pixels=None) -> torch.Tensor:
         """``[B, L, H, A]``: ``(v_hat(x_tau, tau) - (noise - chunk)) ** 2`` per chunk element."""
-        _chunk_shapes(chunk, self.horizon, self.action_dim)
+        check_chunk_shape(chunk, self.horizon, self.action_dim)
         lead = chunk.shape[:-2]
         features = self.backbone(history, history_valid, task_id, pixels).reshape(-1, self.backbone.dim)
         actions = chunk.float().reshape(-1, self.horizon, self.action_dim)
@@ -141,18 +132,13 @@ class FlowPolicy(SeededSampling):
         v = self.velocity(x_tau, tau, features).float()
         return (v - (noise - actions)).square().reshape(*lead, self.horizon, self.action_dim)
 
-    @torch.no_grad()
-    def predict_chunk(self, history, history_valid, task_id, pixels=None) -> torch.Tensor:
-        features = self.backbone(history, history_valid, task_id, pixels)
-        n = features.shape[0]
-        gen = self.sampling_generator(features.device)
-        x = self.initial_noise(n, (self.horizon, self.action_dim), gen, features.device)
-        x = euler_integrate(lambda x, tau: self.velocity(x, tau, features), x, self.sample_steps)
-        return x.clamp(-1.0, 1.0)
+    def sample(self, noise: torch.Tensor, features: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """The chunk ``[N, H, A]``: ``sample_steps`` Euler steps from ``noise`` at ``tau = 1`` to 0."""
+        return euler_integrate(lambda x, tau: self.velocity(x, tau, features), noise, self.sample_steps)
 
 
 def _build_flow(cfg: FlowConfig, info: DataInfo) -> Policy:
-    return chunked_policy(FlowPolicy(cfg, info), cfg, info, "loss_flow")
+    return chunked_policy(FlowPolicy(cfg, info), cfg, info, "loss_flow", history=info.history)
 
 
 register_policy(

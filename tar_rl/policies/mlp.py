@@ -11,29 +11,9 @@ from torch import nn
 from torchrl.objectives import BCLoss
 
 from . import DataInfo, Policy, PolicySpec, register_policy
-from .conditioning import TaskEncoder
-from .vision import PROPRIO_DIMS, image_encoder
+from .common import PROPRIO_DIMS, ObsNorm, TaskEncoder, image_encoder
 
-__all__ = ["MLPConfig", "MLPPolicy", "ObsNorm"]
-
-
-class ObsNorm(nn.Module):
-    """``(x - mean) / std`` with statistics held as buffers (std floored at 1e-3: some MetaWorld
-    observation dims are constant within a task)."""
-
-    def __init__(self, dim: int, mean=None, std=None, min_std: float = 1e-3):
-        super().__init__()
-        mean = torch.zeros(dim) if mean is None else torch.as_tensor(mean, dtype=torch.float32)
-        std = torch.ones(dim) if std is None else torch.as_tensor(std, dtype=torch.float32)
-        if mean.shape != (dim,) or std.shape != (dim,):
-            raise ValueError(
-                f"observation statistics must have shape ({dim},), got {tuple(mean.shape)}, {tuple(std.shape)}"
-            )
-        self.register_buffer("mean", mean.clone())
-        self.register_buffer("std", std.clamp_min(min_std))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.mean) / self.std
+__all__ = ["MLPConfig", "MLPPolicy"]
 
 
 @dataclass
@@ -45,11 +25,11 @@ class MLPConfig:
         hidden: hidden layer widths.
         task_conditioning: ``embedding`` (learned, ``task_dim`` wide), ``instruction`` (the task's
             instruction sentence as a learned bag of words, ``task_dim`` wide, see
-            :mod:`tar_rl.policies.conditioning`), ``onehot`` or ``none``.
+            :mod:`tar_rl.policies.common`), ``onehot`` or ``none``.
         task_dim: width of the learned task embedding.
         normalize_obs: standardise observations with the training data's statistics.
         observation: ``state`` (the 39-d state vector) or ``image`` (the camera image through a
-            conv encoder, plus the proprioceptive state: :mod:`tar_rl.policies.vision`; needs a
+            conv encoder, plus the proprioceptive state: :mod:`tar_rl.policies.common`; needs a
             dataset with images, ``data.image_size > 0``).
         image_dim: width of the image features.
     """
