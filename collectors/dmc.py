@@ -47,6 +47,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.evaluate import COLUMNS
+from tar_rl.collectors.suites import SUITES, Suite
 
 __all__ = [
     "ACTION_DIM",
@@ -420,3 +421,40 @@ def build_dataset(
 
     stem = "+".join(t.split("-")[0] for t in names)
     return import_folder(root, NAME_PREFIX, stem, settings, read, verbose)
+
+
+class DMControlSuite(Suite):
+    """dm_control's point_mass-easy and reacher-easy with scripted experts (module docstring)."""
+
+    name = "dm_control"
+    max_horizon = MAX_HORIZON
+    sources = ("dm_control",)
+
+    def resolve(self, spec: Sequence[str]) -> list[str]:
+        return resolve_tasks(spec)
+
+    def demo_seeds(self, seed: int, n_demos: int) -> set[int]:
+        return set(range(seed, seed + max_attempts(n_demos)))
+
+    def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
+        return set(range(seed, seed + rollouts))
+
+    def check_seeds(self, config: dict) -> None:
+        data, ev = config["data"], config["eval"]
+        check_disjoint(data["seed"], max_attempts(data["n_demos"]), ev["seed"], ev["rollouts"])
+
+    def check_dataset(self, dataset, eval_seed: int, rollouts: int) -> None:
+        clash = sorted(set(dataset.metadata["variation_seeds"]) & self.eval_seeds(eval_seed, rollouts))
+        if clash:
+            raise ValueError(f"the dataset's demonstrations used evaluation seeds {clash[:5]}")
+
+    def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
+        data = config["data"]
+        return build_dataset(data["root"], tasks, n_demos, seed, data["chunk_horizon"], data["history"], verbose=progress)
+
+    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+        ev = config["eval"]
+        return evaluate(actor, tasks, ev["rollouts"], seed=ev["seed"], horizon=ev["horizon"], shard=shard)
+
+
+SUITES.register("dm_control", DMControlSuite())

@@ -58,6 +58,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.evaluate import COLUMNS
+from tar_rl.collectors.suites import SUITES, Suite
 
 __all__ = [
     "ACTION_DIM",
@@ -497,3 +498,68 @@ def _task_rollouts(policy, task, task_id, suite, ks, seed, budget, keys, camera_
     finally:
         env.close()
     return rows
+
+
+class LiberoSuite(Suite):
+    """LIBERO's four suites, evaluation only: datasets come from LIBERO HDF5 files through ``data.path``
+    (the robomimic importer); rollout ``k`` starts from LIBERO's fixed initial state ``k``."""
+
+    name = "libero"
+    max_horizon = max(SUITE_HORIZONS.values())
+    collects = False
+    sources = ("robomimic",)
+    no_collection = NO_COLLECTION
+
+    def resolve(self, spec: Sequence[str]) -> list[str]:
+        try:
+            return resolve_tasks(spec)
+        except ImportError as err:
+            raise ValueError(str(err)) from None
+
+    def demo_seeds(self, seed: int, n_demos: int) -> set[int]:
+        return set()  # separate human demonstrations, no seeds
+
+    def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
+        return set()  # LIBERO's fixed initial states, no seeds
+
+    def check_seeds(self, config: dict) -> None:
+        raise ValueError(NO_COLLECTION)
+
+    def check_dataset(self, dataset, eval_seed: int, rollouts: int) -> None:
+        # No seed range to compare: what is checked is that the dataset's tasks are LIBERO tasks, its
+        # observation keys can be rebuilt from the simulator, and there is one initial state per rollout.
+        if rollouts > INIT_STATES:
+            raise ValueError(f"LIBERO has {INIT_STATES} initial states per task: at most that many rollouts")
+        check_obs_keys([entry["key"] for entry in dataset.metadata.get("obs_keys", [])])
+        try:
+            for task in dataset.tasks:
+                suite_of(task)
+        except ImportError as err:
+            raise ValueError(str(err)) from None
+
+    def check_config(self, config: dict, given, train: Sequence[str], evaluate: Sequence[str]) -> None:
+        outside = sorted(set(evaluate) - set(train))
+        if outside:
+            raise ValueError(
+                f"eval.tasks: {outside} are not tasks of data.path={config['data']['path']} (its tasks: "
+                f"{list(train)}); the policy has no task id for them"
+            )
+
+    def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
+        raise ValueError(NO_COLLECTION)
+
+    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+        metadata = load_dataset(config["data"]["path"]).metadata
+        return evaluate(
+            actor,
+            tasks,
+            config["eval"]["rollouts"],
+            seed=config["eval"]["seed"],
+            horizon=None,  # each suite's H: the paper's suite-wise normalisation
+            shard=shard,
+            task_ids=metadata["task_ids"],
+            obs_keys=[entry["key"] for entry in metadata["obs_keys"]],
+        )
+
+
+SUITES.register("libero", LiberoSuite())

@@ -231,7 +231,8 @@ class DiagnosticsConfig:
 
     Attributes:
         heldout_demos: held-out demonstrations per training task, collected like the training
-            ones from ``heldout_seed`` (MetaWorld only; 0: none). They are never trained on.
+            ones by the job's suite from ``heldout_seed`` (none for a ``data.path`` dataset; 0: none).
+            They are never trained on.
         heldout_seed: base seed of the held-out variations; must differ from the training
             demonstrations' and the evaluation's seeds (checked before work).
         train_episodes: training demonstrations per task along which TAR's weights are computed.

@@ -1,9 +1,9 @@
 """Fit diagnostics of a training run (``summary.json``'s ``fit`` entry), from the trained policy.
 
-Held-out demonstrations are collected like the training ones, from ``diagnostics.heldout_seed``
-(disjoint from the training and evaluation seeds, checked by :func:`check_heldout_seeds`), and only
-for MetaWorld datasets collected by the recipe (an imported dataset or another suite has none:
-the held-out entries are then ``None``). The numbers are computed by :mod:`tar_rl.diagnostics`.
+Held-out demonstrations are collected like the training ones, by the job's suite, from
+``diagnostics.heldout_seed`` (disjoint from the training and evaluation seeds, checked by
+:func:`check_heldout_seeds`); a job on a given dataset (``data.path``) or with a suite that collects
+nothing has none, and the held-out entries are then ``None``. The numbers are computed by :mod:`tar_rl.diagnostics`.
 """
 
 from __future__ import annotations
@@ -13,59 +13,50 @@ from collections.abc import Sequence
 import pandas as pd
 
 from tar_rl import diagnostics
-from tar_rl.collectors import tasks as mw_tasks
-from tar_rl.data import DemoDataset, build_dataset
+from tar_rl.collectors.suites import SUITES, Suite
+from tar_rl.data import DemoDataset
 from tar_rl.objectives import TARLoss
 
 __all__ = ["check_heldout_seeds", "fit_summary", "heldout_dataset", "step_table"]
 
 
-def _collects_heldout(config: dict) -> bool:
-    return (
-        config["diagnostics"]["heldout_demos"] > 0
-        and not config["data"]["path"]
-        and (config["data"]["suite"] == "metaworld")
-    )
+def _heldout_suite(config: dict) -> Suite | None:
+    """The suite that collects the held-out demonstrations: the job's, when it collects its own data."""
+    if config["diagnostics"]["heldout_demos"] < 1 or config["data"]["path"]:
+        return None
+    suite = SUITES.get(config["data"]["suite"])
+    return suite if suite.collects else None
 
 
 def check_heldout_seeds(config: dict) -> None:
-    """Refuse held-out variations that may meet the training demonstrations' or the evaluation's.
+    """Refuse held-out demonstrations whose seeds may meet the training demonstrations' or the evaluation's.
 
     Raises:
         ValueError: naming the shared seeds.
     """
-    if not _collects_heldout(config):
+    suite = _heldout_suite(config)
+    if suite is None:
         return
     diag, data, ev = config["diagnostics"], config["data"], config["eval"]
-    heldout = mw_tasks.variation_seeds(diag["heldout_seed"], 3 * diag["heldout_demos"] + 5)
-    train = mw_tasks.variation_seeds(data["seed"], 3 * data["n_demos"] + 5)
-    evaluation = mw_tasks.variation_seeds(ev["seed"], ev["rollouts"])
+    heldout = suite.demo_seeds(diag["heldout_seed"], diag["heldout_demos"])
+    train = suite.demo_seeds(data["seed"], data["n_demos"])
+    evaluation = suite.eval_seeds(ev["seed"], ev["rollouts"])
     for other, what in ((train, "data.seed"), (evaluation, "eval.seed")):
-        shared = sorted(set(heldout) & set(other))
+        shared = sorted(heldout & other)
         if shared:
             raise ValueError(
-                f"diagnostics.heldout_seed={diag['heldout_seed']} shares the seeds {shared} with {what}; "
+                f"diagnostics.heldout_seed={diag['heldout_seed']} shares the seeds {shared[:5]} with {what}; "
                 "choose a held-out seed that neither training nor evaluation uses"
             )
 
 
 def heldout_dataset(config: dict, tasks: Sequence[str], progress: bool) -> DemoDataset | None:
     """The held-out demonstrations of the training tasks (collected once, cached), or ``None``."""
-    if not _collects_heldout(config):
+    suite = _heldout_suite(config)
+    if suite is None:
         return None
-    data, diag = config["data"], config["diagnostics"]
-    return build_dataset(
-        data["root"],
-        list(tasks),
-        n_demos=diag["heldout_demos"],
-        seed=diag["heldout_seed"],
-        chunk_horizon=data["chunk_horizon"],
-        history=data["history"],
-        image_size=data["image_size"],
-        workers=data["workers"],
-        progress=progress,
-        verbose=False,
-    )
+    diag = config["diagnostics"]
+    return suite.build_dataset(config, tasks, diag["heldout_demos"], diag["heldout_seed"], progress)
 
 
 def step_table(rows: list[tuple], value: str) -> pd.DataFrame:

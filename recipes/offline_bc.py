@@ -47,10 +47,8 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed, runs
-from tar_rl.collectors import dmc, libero
-from tar_rl.collectors import tasks as mw_tasks
-from tar_rl.collectors.evaluate import MAX_HORIZON, evaluate
-from tar_rl.data import DatasetError, DemoDataset, build_dataset, load_dataset
+from tar_rl.collectors.suites import SUITES, Suite, suite_for
+from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
 from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
 from tar_rl.metrics import summarize
@@ -143,169 +141,6 @@ def _resolve_tasks(suite: Suite, name: str, spec: list[str]) -> tuple[str, ...]:
         raise ConfigError(f"{name}: {err}") from None
 
 
-# -- Suites: the simulators demonstrations are collected in and policies evaluated on ------------
-
-
-@dataclasses.dataclass(frozen=True)
-class Suite:
-    """What the recipe needs of a simulator suite (``data.suite``); each callable takes the resolved config.
-
-    Attributes:
-        resolve: task and group names -> task names (``ValueError`` naming the valid ones).
-        max_horizon: the largest ``eval.horizon``.
-        check_seeds: ``(config)``: raise ``ValueError`` if the demonstrations' seeds may meet the evaluation's.
-        check_dataset: ``(dataset, eval_seed, rollouts)``: the same for a dataset already collected.
-        build_dataset: ``(config, tasks, progress)`` -> the demonstration dataset (collected once, cached).
-        evaluate: ``(config, actor, tasks, progress, shard)`` -> one row per rollout (``evaluate.COLUMNS``).
-        images: whether ``data.image_size > 0`` is supported.
-    """
-
-    resolve: Callable[[list[str]], list[str]]
-    max_horizon: int
-    check_seeds: Callable[[dict], None]
-    check_dataset: Callable[[DemoDataset, int, int], None]
-    build_dataset: Callable[[dict, Sequence[str], bool], DemoDataset]
-    evaluate: Callable[..., pd.DataFrame]
-    images: bool
-
-
-def _metaworld_seeds(config: dict) -> None:
-    data, ev = config["data"], config["eval"]
-    demo_seeds = mw_tasks.variation_seeds(data["seed"], 3 * data["n_demos"] + 5)  # the most collection may try
-    mw_tasks.check_disjoint(demo_seeds, mw_tasks.variation_seeds(ev["seed"], ev["rollouts"]))
-
-
-def _metaworld_dataset(config: dict, tasks: Sequence[str], progress: bool) -> DemoDataset:
-    data = config["data"]
-    return build_dataset(
-        data["root"],
-        list(tasks),
-        n_demos=data["n_demos"],
-        seed=data["seed"],
-        chunk_horizon=data["chunk_horizon"],
-        history=data["history"],
-        image_size=data["image_size"],
-        workers=data["workers"],
-        progress=progress,
-    )
-
-
-def _metaworld_evaluate(config, actor, tasks, progress, shard) -> pd.DataFrame:
-    ev = config["eval"]
-    workers = ev["workers"]
-    if workers is None and shard[1] > 1:
-        workers = max(1, (os.cpu_count() or 1) // shard[1])
-    return evaluate(
-        actor,
-        list(tasks),
-        rollouts_per_task=ev["rollouts"],
-        seed=ev["seed"],
-        horizon=ev["horizon"],
-        workers=workers,
-        progress=progress,
-        shard=shard,
-        image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
-    )
-
-
-def _dmc_seeds(config: dict) -> None:
-    data, ev = config["data"], config["eval"]
-    dmc.check_disjoint(data["seed"], dmc.max_attempts(data["n_demos"]), ev["seed"], ev["rollouts"])
-
-
-def _dmc_dataset_seeds(dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
-    tried = dataset.metadata["variation_seeds"]
-    clash = sorted(set(tried) & set(range(eval_seed, eval_seed + rollouts)))
-    if clash:
-        raise ValueError(f"the dataset's demonstrations used evaluation seeds {clash[:5]}")
-
-
-def _dmc_dataset(config: dict, tasks: Sequence[str], progress: bool) -> DemoDataset:
-    data = config["data"]
-    return dmc.build_dataset(
-        data["root"], tasks, data["n_demos"], data["seed"], data["chunk_horizon"], data["history"], verbose=progress
-    )
-
-
-def _dmc_evaluate(config, actor, tasks, progress, shard) -> pd.DataFrame:
-    ev = config["eval"]
-    return dmc.evaluate(actor, tasks, ev["rollouts"], seed=ev["seed"], horizon=ev["horizon"], shard=shard)
-
-
-def _libero_resolve(spec: list[str]) -> list[str]:
-    try:
-        return libero.resolve_tasks(spec)
-    except ImportError as err:
-        raise ValueError(str(err)) from None
-
-
-def _libero_no_collection(*_args) -> None:
-    raise ValueError(libero.NO_COLLECTION)
-
-
-def _libero_dataset_check(dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
-    # LIBERO's demonstrations are separate human demonstrations and its rollouts start from the
-    # suite's fixed initial states 0..rollouts-1: no seed range to compare. What is checked: the
-    # dataset's tasks are LIBERO tasks, its observation keys can be rebuilt from the simulator, and
-    # there is one initial state per rollout.
-    if rollouts > libero.INIT_STATES:
-        raise ValueError(f"LIBERO has {libero.INIT_STATES} initial states per task: at most that many rollouts")
-    keys = [entry["key"] for entry in dataset.metadata.get("obs_keys", [])]
-    libero.check_obs_keys(keys)
-    try:
-        for task in dataset.tasks:
-            libero.suite_of(task)
-    except ImportError as err:
-        raise ValueError(str(err)) from None
-
-
-def _libero_evaluate(config, actor, tasks, progress, shard) -> pd.DataFrame:
-    ev = config["eval"]
-    metadata = load_dataset(config["data"]["path"]).metadata
-    return libero.evaluate(
-        actor,
-        tasks,
-        ev["rollouts"],
-        seed=ev["seed"],
-        horizon=None,  # each suite's H: the paper's suite-wise normalisation
-        shard=shard,
-        task_ids=metadata["task_ids"],
-        obs_keys=[entry["key"] for entry in metadata["obs_keys"]],
-    )
-
-
-SUITES: dict[str, Suite] = {
-    "metaworld": Suite(
-        resolve=mw_tasks.resolve_tasks,
-        max_horizon=MAX_HORIZON,
-        check_seeds=_metaworld_seeds,
-        check_dataset=lambda dataset, seed, rollouts: dataset.check_disjoint(seed, rollouts),
-        build_dataset=_metaworld_dataset,
-        evaluate=_metaworld_evaluate,
-        images=True,
-    ),
-    "dm_control": Suite(
-        resolve=dmc.resolve_tasks,
-        max_horizon=dmc.MAX_HORIZON,
-        check_seeds=_dmc_seeds,
-        check_dataset=_dmc_dataset_seeds,
-        build_dataset=_dmc_dataset,
-        evaluate=_dmc_evaluate,
-        images=False,
-    ),
-    # Evaluation only: datasets come from LIBERO HDF5 files (robomimic importer) through data.path.
-    "libero": Suite(
-        resolve=_libero_resolve,
-        max_horizon=max(libero.SUITE_HORIZONS.values()),
-        check_seeds=_libero_no_collection,
-        check_dataset=_libero_dataset_check,
-        build_dataset=_libero_no_collection,
-        evaluate=_libero_evaluate,
-        images=False,
-    ),
-}
-
-
 def validate(config: dict) -> dict:
     """Check every setting before any work; returns the resolved task lists ``{"train": ..., "eval": ...}``.
 
@@ -322,19 +157,13 @@ def validate(config: dict) -> dict:
         if not 0 <= obj[key] <= 1:
             raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
     _check_objective_numbers(obj)
-    _check_choice("data.suite", data["suite"], list(SUITES))
+    _check_choice("data.suite", data["suite"], SUITES.names())
     given = _given_dataset(data["path"]) if data["path"] else None
-    suite_name = given.source if given is not None else data["suite"]  # a given dataset brings its own
-    if data["suite"] == "libero":  # imported LIBERO files are evaluated on LIBERO when asked for
-        if given is None:
-            raise ConfigError(f"data.suite=libero needs data.path: {libero.NO_COLLECTION}")
-        if given.source != "robomimic":
-            raise ConfigError(
-                f"data.suite=libero evaluates demonstrations imported from LIBERO HDF5 files (source robomimic); "
-                f"data.path={data['path']} holds {given.source} demonstrations"
-            )
-        suite_name = "libero"
-    suite = SUITES.get(suite_name)
+    try:
+        suite = suite_for(data["suite"], given)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    suite_name = suite.name if suite is not None else given.source
     if given is not None and suite is None and ev["rollouts"]:
         raise ConfigError(
             f"data.path={data['path']} holds {given.source} demonstrations of {given.tasks}, which have no "
@@ -344,11 +173,11 @@ def validate(config: dict) -> dict:
     eval_tasks = ()
     if ev["rollouts"]:
         eval_tasks = _resolve_tasks(suite, "eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
-    if suite_name == "libero" and set(eval_tasks) - set(train_tasks):
-        raise ConfigError(
-            f"eval.tasks: {sorted(set(eval_tasks) - set(train_tasks))} are not tasks of data.path={data['path']} "
-            f"(its tasks: {list(train_tasks)}); the policy has no task id for them"
-        )
+    if suite is not None:
+        try:
+            suite.check_config(config, given, train_tasks, eval_tasks)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
     if data["image_size"] and suite is not None and not suite.images:
         raise ConfigError(f"data.image_size={data['image_size']}: the {suite_name} suite has no image observations")
     for name, value, low in (
@@ -371,7 +200,7 @@ def validate(config: dict) -> dict:
         ("logging.record_episodes", log["record_episodes"], 1),
     ):
         _check_int(name, value, low)
-    _check_int("eval.horizon", ev["horizon"], 1, suite.max_horizon if suite is not None else MAX_HORIZON)
+    _check_int("eval.horizon", ev["horizon"], 1, suite.max_horizon if suite is not None else None)
     _check_int("threads", config["threads"], 0)
     for name in ("data.workers", "eval.workers"):
         value = config[name.split(".")[0]][name.split(".")[1]]
@@ -503,7 +332,7 @@ def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> D
     data = config["data"]
     if data["path"]:
         return _given_dataset(data["path"])
-    return SUITES[data["suite"]].build_dataset(config, tasks, progress)
+    return SUITES[data["suite"]].build_dataset(config, tasks, data["n_demos"], data["seed"], progress)
 
 
 def make_policy(config: dict, info: DataInfo) -> Policy:

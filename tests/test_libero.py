@@ -334,12 +334,13 @@ def _train_config(tmp_path, *overrides):
 
 
 def test_recipe_refuses_libero_without_an_imported_dataset(tmp_path):
-    from tar_rl.recipes.offline_bc import SUITES, ConfigError, validate
+    from tar_rl.collectors.suites import SUITES
+    from tar_rl.recipes.offline_bc import ConfigError, validate
 
     with pytest.raises(ConfigError, match=r"data\.suite=libero needs data\.path: LIBERO demonstrations cannot be"):
         validate(_train_config(tmp_path, "data.suite=libero"))
     with pytest.raises(ValueError, match=r"cannot be collected here: import LIBERO HDF5 files with `tar-rl data"):
-        SUITES["libero"].build_dataset({}, [SPATIAL_0], False)
+        SUITES["libero"].build_dataset({}, [SPATIAL_0], 1, 0, False)
     assert not (tmp_path / "runs").exists()
 
 

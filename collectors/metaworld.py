@@ -1,0 +1,76 @@
+"""The MetaWorld suite (``data.suite=metaworld``, the default): scripted-expert demonstrations and the
+batched TorchRL evaluator over the v3 tasks (:mod:`tar_rl.collectors.tasks`, ``demos``, ``evaluate``)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+from tar_rl.data import DemoDataset, build_dataset
+
+from . import tasks as mw_tasks
+from .evaluate import MAX_HORIZON, evaluate
+from .suites import SUITES, Suite
+
+__all__ = ["MetaWorldSuite"]
+
+
+class MetaWorldSuite(Suite):
+    """MetaWorld v3: task variations drawn from MT1 seeds, 50 variations per seed."""
+
+    name = "metaworld"
+    max_horizon = MAX_HORIZON
+    images = True
+    sources = ("metaworld",)
+
+    def resolve(self, spec: Sequence[str]) -> list[str]:
+        return mw_tasks.resolve_tasks(list(spec))
+
+    def demo_seeds(self, seed: int, n_demos: int) -> set[int]:
+        return set(mw_tasks.variation_seeds(seed, 3 * n_demos + 5))  # the most attempts collection makes
+
+    def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
+        return set(mw_tasks.variation_seeds(seed, rollouts))
+
+    def check_seeds(self, config: dict) -> None:
+        data, ev = config["data"], config["eval"]
+        mw_tasks.check_disjoint(
+            sorted(self.demo_seeds(data["seed"], data["n_demos"])), sorted(self.eval_seeds(ev["seed"], ev["rollouts"]))
+        )
+
+    def check_dataset(self, dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
+        dataset.check_disjoint(eval_seed, rollouts)
+
+    def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
+        data = config["data"]
+        return build_dataset(
+            data["root"],
+            list(tasks),
+            n_demos=n_demos,
+            seed=seed,
+            chunk_horizon=data["chunk_horizon"],
+            history=data["history"],
+            image_size=data["image_size"],
+            workers=data["workers"],
+            progress=progress,
+        )
+
+    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+        ev = config["eval"]
+        workers = ev["workers"]
+        if workers is None and shard[1] > 1:
+            workers = max(1, (os.cpu_count() or 1) // shard[1])
+        return evaluate(
+            actor,
+            list(tasks),
+            rollouts_per_task=ev["rollouts"],
+            seed=ev["seed"],
+            horizon=ev["horizon"],
+            workers=workers,
+            progress=progress,
+            shard=shard,
+            image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
+        )
+
+
+SUITES.register("metaworld", MetaWorldSuite())
