@@ -47,7 +47,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.evaluate import COLUMNS
-from tar_rl.collectors.suites import SUITES, Suite
+from tar_rl.collectors.suite import Suite
 
 __all__ = [
     "ACTION_DIM",
@@ -450,11 +450,10 @@ class DMControlSuite(Suite):
 
     def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         data = config["data"]
-        return build_dataset(data["root"], tasks, n_demos, seed, data["chunk_horizon"], data["history"], verbose=progress)
+        return build_dataset(
+            data["root"], tasks, n_demos, seed, data["chunk_horizon"], data["history"], verbose=progress
+        )
 
     def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
         ev = config["eval"]
         return evaluate(actor, tasks, ev["rollouts"], seed=ev["seed"], horizon=ev["horizon"], shard=shard)
-
-
-SUITES.register("dm_control", DMControlSuite())

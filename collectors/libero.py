@@ -58,7 +58,8 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.evaluate import COLUMNS
-from tar_rl.collectors.suites import SUITES, Suite
+from tar_rl.collectors.suite import Suite
+from tar_rl.data import load_dataset
 
 __all__ = [
     "ACTION_DIM",
@@ -560,6 +561,3 @@ class LiberoSuite(Suite):
             task_ids=metadata["task_ids"],
             obs_keys=[entry["key"] for entry in metadata["obs_keys"]],
         )
-
-
-SUITES.register("libero", LiberoSuite())

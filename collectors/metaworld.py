@@ -10,7 +10,7 @@ from tar_rl.data import DemoDataset, build_dataset
 
 from . import tasks as mw_tasks
 from .evaluate import MAX_HORIZON, evaluate
-from .suites import SUITES, Suite
+from .suite import Suite
 
 __all__ = ["MetaWorldSuite"]
 
@@ -71,6 +71,3 @@ class MetaWorldSuite(Suite):
             shard=shard,
             image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
         )
-
-
-SUITES.register("metaworld", MetaWorldSuite())

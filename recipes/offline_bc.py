@@ -33,7 +33,6 @@ import contextlib
 import copy
 import dataclasses
 import math
-import os
 import sys
 import time
 from collections.abc import Callable, Sequence
