@@ -389,7 +389,7 @@ def build_dataset(
     from tar_rl.importers.common import import_folder
 
     names = resolve_tasks(tasks)
-    n_demos = _data._positive_int("n_demos", n_demos)
+    n_demos = _data.positive_int("n_demos", n_demos)
     attempts = max_attempts(n_demos)
     settings = {
         "source": "dm_control",
@@ -397,9 +397,9 @@ def build_dataset(
         "n_demos": n_demos,
         "seed": int(seed),
         "max_attempts": attempts,
-        "chunk_horizon": _data._positive_int("chunk_horizon", chunk_horizon),
-        "history": _data._positive_int("history", history),
-        "dm_control": _data._version("dm-control"),
+        "chunk_horizon": _data.positive_int("chunk_horizon", chunk_horizon),
+        "history": _data.positive_int("history", history),
+        "dm_control": _data.package_version("dm-control"),
         "format_version": _data.FORMAT_VERSION,
     }
 
@@ -416,7 +416,7 @@ def build_dataset(
             "n_demos": n_demos,
             "success": {t: f"||to_target|| < {_THRESHOLD[t]}" for t in names},
             "action_target": "the expert's action, in [-1, 1]",
-            "versions": {"dm_control": _data._version("dm-control"), "mujoco": _data._version("mujoco")},
+            "versions": {"dm_control": _data.package_version("dm-control"), "mujoco": _data.package_version("mujoco")},
         }
 
     stem = "+".join(t.split("-")[0] for t in names)

@@ -75,11 +75,15 @@ __all__ = [
     "DatasetError",
     "DemoDataset",
     "SegmentSampler",
+    "array_stats",
     "build_dataset",
     "cache_key",
     "check_content",
+    "clean_temp_siblings",
     "content_digest",
     "load_dataset",
+    "package_version",
+    "positive_int",
     "steps_tensordict",
     "write_dataset",
 ]
@@ -98,7 +102,8 @@ class DatasetError(TarRLError, RuntimeError):
     """A dataset folder is incomplete, inconsistent with its metadata, or changed since it was written."""
 
 
-def _version(dist: str) -> str | None:
+def package_version(dist: str) -> str | None:
+    """The installed version of the distribution ``dist`` (None when it is not installed)."""
     try:
         return importlib.metadata.version(dist)
     except importlib.metadata.PackageNotFoundError:
@@ -124,7 +129,7 @@ def _settings(
         "history": history,
         "max_attempts": max_attempts,
         "format_version": FORMAT_VERSION,
-        "metaworld": _version("metaworld"),
+        "metaworld": package_version("metaworld"),
     }
 
 
@@ -134,7 +139,8 @@ def cache_key(settings: dict) -> str:
     return hashlib.sha256(blob).hexdigest()[:16]
 
 
-def _positive_int(name: str, value) -> int:
+def positive_int(name: str, value) -> int:
+    """``value`` as an int; ``ValueError`` naming ``name`` unless it is a positive integer."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise ValueError(f"{name} must be a positive integer, got {value!r}.")
     return int(value)
@@ -269,7 +275,8 @@ def _to_tensordict(results: dict[str, _demos.TaskDemos], horizon: int, history: 
     return data
 
 
-def _stats(x: np.ndarray) -> dict[str, list[float]]:
+def array_stats(x: np.ndarray) -> dict[str, list[float]]:
+    """Per-column mean, std, min and max of ``[N, D]`` values (float64), as lists for ``metadata.json``."""
     x = x.astype(np.float64)
     return {
         "mean": x.mean(0).tolist(),
@@ -323,17 +330,17 @@ def _metadata(settings: dict, key: str, results: dict[str, _demos.TaskDemos], da
         "horizon": _demos.HORIZON,
         "action_target": ACTION_TARGET,
         "stats": {
-            "observation": _stats(data["observation"].numpy()),
-            "action": _stats(data["action"].numpy()),
-            "action_raw": _stats(data["action_raw"].numpy()),
+            "observation": array_stats(data["observation"].numpy()),
+            "action": array_stats(data["action"].numpy()),
+            "action_raw": array_stats(data["action_raw"].numpy()),
         },
         "versions": {
             "tar_rl": tar_rl.__version__,
             "torch": torch.__version__,
-            "torchrl": _version("torchrl"),
-            "tensordict": _version("tensordict"),
-            "metaworld": _version("metaworld"),
-            "mujoco": _version("mujoco"),
+            "torchrl": package_version("torchrl"),
+            "tensordict": package_version("tensordict"),
+            "metaworld": package_version("metaworld"),
+            "mujoco": package_version("mujoco"),
             "numpy": np.__version__,
         },
         "collection_seconds": secs,
@@ -353,7 +360,7 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _clean_temp_siblings(root: Path, name: str) -> None:
+def clean_temp_siblings(root: Path, name: str) -> None:
     """Remove temporary build folders of ``name`` left by processes that no longer run."""
     for tmp in root.glob(f".{name}.tmp-*"):
         try:
@@ -403,9 +410,9 @@ def build_dataset(
         RuntimeError: a task whose expert did not reach ``n_demos`` successes.
     """
     names = _tasks.resolve_tasks(tasks)
-    n_demos = _positive_int("n_demos", n_demos)
-    chunk_horizon = _positive_int("chunk_horizon", chunk_horizon)
-    history = _positive_int("history", history)
+    n_demos = positive_int("n_demos", n_demos)
+    chunk_horizon = positive_int("chunk_horizon", chunk_horizon)
+    history = positive_int("history", history)
     if isinstance(image_size, bool) or not isinstance(image_size, (int, np.integer)) or image_size < 0:
         raise ValueError(f"image_size must be a non-negative integer (0: no images), got {image_size!r}.")
     image_size = int(image_size)
@@ -413,7 +420,7 @@ def build_dataset(
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
     seed = int(seed)
     max_attempts = _demos.default_max_attempts(n_demos) if max_attempts is None else max_attempts
-    max_attempts = _positive_int("max_attempts", max_attempts)
+    max_attempts = positive_int("max_attempts", max_attempts)
     if max_attempts < n_demos:
         raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
 
@@ -423,7 +430,7 @@ def build_dataset(
     name = NAME_PREFIX + key
     final = root / name
     root.mkdir(parents=True, exist_ok=True)
-    _clean_temp_siblings(root, name)
+    clean_temp_siblings(root, name)
 
     if final.exists():
         try:
@@ -723,8 +730,8 @@ class SegmentSampler:
         keys: Iterable | None = None,
         generator: torch.Generator | None = None,
     ):
-        self.batch_segments = _positive_int("batch_segments", batch_segments)
-        self.slice_len = _positive_int("slice_len", slice_len)
+        self.batch_segments = positive_int("batch_segments", batch_segments)
+        self.slice_len = positive_int("slice_len", slice_len)
         self.dataset_storage = storage  # keeps the memory maps alive
         stored = storage._storage[: len(storage)]
         if keys is not None:

@@ -136,7 +136,7 @@ def import_folder(
     root = Path(out)
     final = root / name
     root.mkdir(parents=True, exist_ok=True)
-    _data._clean_temp_siblings(root, name)
+    _data.clean_temp_siblings(root, name)
     if final.exists():
         try:
             found = _data.load_dataset(final)
@@ -207,15 +207,15 @@ def _metadata(settings, key, tasks, ids, episodes, data, extra, secs) -> dict:
         "image_size": 0,
         "action_range": list(ACTION_RANGE),
         "stats": {
-            "observation": _data._stats(data["observation"].numpy()),
-            "action": _data._stats(data["action"].numpy()),
-            "action_raw": _data._stats(data["action_raw"].numpy()),
+            "observation": _data.array_stats(data["observation"].numpy()),
+            "action": _data.array_stats(data["action"].numpy()),
+            "action_raw": _data.array_stats(data["action_raw"].numpy()),
         },
         "versions": {
             "tar_rl": tar_rl.__version__,
             "torch": torch.__version__,
-            "torchrl": _data._version("torchrl"),
-            "tensordict": _data._version("tensordict"),
+            "torchrl": _data.package_version("torchrl"),
+            "tensordict": _data.package_version("tensordict"),
             "numpy": np.__version__,
         },
         "import_seconds": secs,

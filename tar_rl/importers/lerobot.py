@@ -296,8 +296,8 @@ def import_lerobot(
     path = Path(path)
     columns = _parse_columns(obs_keys)
     try:
-        chunk_horizon = _data._positive_int("chunk_horizon", chunk_horizon)
-        history = _data._positive_int("history", history)
+        chunk_horizon = _data.positive_int("chunk_horizon", chunk_horizon)
+        history = _data.positive_int("history", history)
     except ValueError as err:
         raise DemoImportError(str(err)) from None
     if not path.is_dir():

@@ -226,8 +226,8 @@ def import_robomimic(
         raise DemoImportError("no files to import")
     keys = parse_keys(obs_keys, "low-dimensional observation key")
     try:
-        chunk_horizon = _data._positive_int("chunk_horizon", chunk_horizon)
-        history = _data._positive_int("history", history)
+        chunk_horizon = _data.positive_int("chunk_horizon", chunk_horizon)
+        history = _data.positive_int("history", history)
     except ValueError as err:
         raise DemoImportError(str(err)) from None
     if filter_key is not None and not str(filter_key):
@@ -287,7 +287,7 @@ def _metadata(settings, keys, sources) -> dict:
             {"key": k, "dim": d, "slice": [offsets[i], offsets[i + 1]]} for i, (k, d) in enumerate(zip(keys, dims))
         ],
         "action_target": ACTION_TARGET,
-        "versions": {"h5py": _data._version("h5py")},
+        "versions": {"h5py": _data.package_version("h5py")},
     }
 
 
