@@ -225,8 +225,8 @@ class Spec:
 def _compose(overrides: Sequence[str]) -> dict:
     from hydra import compose, initialize
 
+    from tar_rl.recipes import resolve_config
     from tar_rl.recipes.config import register_configs
-    from tar_rl.recipes.offline_bc import resolve_config
 
     register_configs()
     with initialize(version_base="1.3", config_path=None):
@@ -240,7 +240,7 @@ class Planner:
         self.scale, self.out, self.data_root, self.extra = scale, out, data_root, tuple(extra)
 
     def spec(self, *overrides: str) -> Spec:
-        from tar_rl.recipes.offline_bc import ConfigError, run_name, validate
+        from tar_rl.recipes import ConfigError, run_name, validate
 
         items = (
             *self.scale.common,
@@ -337,7 +337,7 @@ def estimate_seconds(scale: Scale, specs: Sequence[Spec], jobs: int) -> float:
 
 def _collect_datasets(specs: Sequence[Spec]) -> None:
     """Collect (or load) each distinct dataset once, before runs start in parallel."""
-    from tar_rl.recipes.offline_bc import make_dataset, validate
+    from tar_rl.recipes import make_dataset, validate
 
     seen = set()
     for spec in specs:
@@ -370,7 +370,7 @@ def execute(scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_d
     _collect_datasets(todo)
     failed: list[Spec] = []
     if jobs <= 1:
-        from tar_rl.recipes.offline_bc import train
+        from tar_rl.recipes import train
 
         for i, spec in enumerate(todo, 1):
             print(f"[{i}/{len(todo)}] {spec.run_dir.name}", flush=True)

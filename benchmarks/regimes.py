@@ -315,7 +315,7 @@ def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[s
     import yaml
 
     from tar_rl.io import write_json_atomic
-    from tar_rl.recipes.offline_bc import run_name
+    from tar_rl.recipes import run_name
 
     copied = []
     for run in sorted(p for p in src.iterdir() if (p / "summary.json").is_file()):

@@ -1,4 +1,4 @@
-"""Offline behaviour cloning on MetaWorld demonstrations: typed config -> ``make_*`` builders -> one loop.
+"""Offline behaviour cloning: the training job (typed config -> ``make_*`` builders -> one loop).
 
 ``tar-rl train [overrides]`` runs :func:`train` through Hydra (see ``recipes/config.py`` for the
 config). The loop::
@@ -31,37 +31,28 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import dataclasses
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 import torch
-from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl import distributed, runs
-from tar_rl.collectors.suites import SUITES, Suite, suite_for
-from tar_rl.data import DatasetError, DemoDataset, load_dataset
+from tar_rl import distributed
+from tar_rl.collectors.suites import SUITES
 from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
-from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
+from tar_rl.io import atomic_write, write_json_atomic
 from tar_rl.metrics import summarize
-from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, MixSchedule, TARLoss, window_weights
-from tar_rl.policies import POLICIES, DataInfo, Policy, build_policy
+from tar_rl.policies import DataInfo
 from tar_rl.runlock import run_lock
 from tar_rl.runs import (
-    CHECKPOINT,
     RunLogs,
-    config_differences,
     git_commit,
     json_metric,
     last_metric,
-    load_checkpoint,
     machine,
     print_table,
     rollout_records,
@@ -70,334 +61,14 @@ from tar_rl.runs import (
 )
 
 from . import diagnose, post_training
-from .config import CONFIG_NAME, default_config, register_configs
+from .builders import make_dataset, make_evaluator, make_objective, make_optimizer, make_policy, torch_device
+from .config import CONFIG_NAME, register_configs
+from .errors import ConfigError, TrainingError
+from .record import demo_episodes, record_weights
+from .rundir import check_resumable, identity_differences, last_checkpoint, prepare_run_dir, run_name
+from .validate import resolve_config, validate
 
-__all__ = [
-    "ConfigError",
-    "TrainingError",
-    "evaluate_checkpoint",
-    "hydra_main",
-    "make_dataset",
-    "make_evaluator",
-    "make_objective",
-    "make_optimizer",
-    "make_policy",
-    "policy_from_checkpoint",
-    "record_weights",
-    "resolve_config",
-    "run_name",
-    "train",
-    "validate",
-]
-
-
-class ConfigError(TarRLError, ValueError):
-    """A bad setting (or a run folder that holds another run), reported before any work starts."""
-
-
-class TrainingError(TarRLError, RuntimeError):
-    """The training run cannot go on (a non-finite loss, a full disk); the last good checkpoint is kept."""
-
-
-# -- Config ------------------------------------------------------------------------------------
-
-
-def resolve_config(cfg: Any) -> dict:
-    """A plain dict of the job's settings from a Hydra ``DictConfig``, a :class:`TrainConfig` or a dict."""
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(cfg, DictConfig):
-        config = OmegaConf.to_container(cfg, resolve=True)
-    elif dataclasses.is_dataclass(cfg):
-        config = dataclasses.asdict(cfg)
-    elif isinstance(cfg, dict):
-        config = copy.deepcopy(cfg)
-    else:
-        raise ConfigError(f"expected a TrainConfig, a DictConfig or a dict, got {type(cfg).__name__}")
-    config.pop("defaults", None)
-    config.pop("hydra", None)
-    return config
-
-
-def _check_int(name: str, value, low: int, high: int | None = None) -> None:
-    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
-    if not ok:
-        bounds = f"between {low} and {high}" if high is not None else f">= {low}"
-        raise ConfigError(f"{name} must be an integer {bounds}, got {value!r}")
-
-
-def _check_choice(name: str, value, choices: Sequence[str]) -> None:
-    if value not in choices:
-        raise ConfigError(f"{name}={value!r} is not valid; choose one of {list(choices)}")
-
-
-def _resolve_tasks(suite: Suite, name: str, spec: list[str]) -> tuple[str, ...]:
-    if not spec:
-        raise ConfigError(f"{name} is empty: name at least one task or group")
-    try:
-        return tuple(suite.resolve(list(spec)))
-    except ValueError as err:
-        raise ConfigError(f"{name}: {err}") from None
-
-
-def validate(config: dict) -> dict:
-    """Check every setting before any work; returns the resolved task lists ``{"train": ..., "eval": ...}``.
-
-    Raises:
-        ConfigError: naming the setting and the valid choices or range.
-    """
-    obj, data, ev, opt, log = (config[k] for k in ("objective", "data", "eval", "optim", "logging"))
-    _check_choice("objective.name", obj["name"], list(WEIGHTINGS))
-    _check_choice("policy.name", config["policy"]["name"], list(POLICIES))
-    _check_choice("objective.cap", obj["cap"], ["paper", "exact"])
-    _check_choice("objective.shape", obj["shape"], ["linear", "cosine"])
-    _check_choice("objective.compile", obj["compile"], list(COMPILE_MODES))
-    for key in ("start", "ramp"):
-        if not 0 <= obj[key] <= 1:
-            raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
-    _check_objective_numbers(obj)
-    _check_choice("data.suite", data["suite"], SUITES.names())
-    given = _given_dataset(data["path"]) if data["path"] else None
-    try:
-        suite = suite_for(data["suite"], given)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    suite_name = suite.name if suite is not None else given.source
-    if given is not None and suite is None and ev["rollouts"]:
-        raise ConfigError(
-            f"data.path={data['path']} holds {given.source} demonstrations of {given.tasks}, which have no "
-            f"simulator here (evaluation runs {sorted(SUITES)}): set eval.rollouts=0 to train without evaluation"
-        )
-    train_tasks = tuple(given.tasks) if given is not None else _resolve_tasks(suite, "data.tasks", data["tasks"])
-    eval_tasks = ()
-    if ev["rollouts"]:
-        eval_tasks = _resolve_tasks(suite, "eval.tasks", ev["tasks"]) if ev["tasks"] else train_tasks
-    if suite is not None:
-        try:
-            suite.check_config(config, given, train_tasks, eval_tasks)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
-    if data["image_size"] and suite is not None and not suite.images:
-        raise ConfigError(f"data.image_size={data['image_size']}: the {suite_name} suite has no image observations")
-    for name, value, low in (
-        ("seed", config["seed"], 0),
-        ("data.seed", data["seed"], 0),
-        ("eval.seed", ev["seed"], 0),
-        ("data.n_demos", data["n_demos"], 1),
-        ("data.slice_len", data["slice_len"], 1),
-        ("data.batch_segments", data["batch_segments"], 1),
-        ("data.chunk_horizon", data["chunk_horizon"], 1),
-        ("data.history", data["history"], 1),
-        ("data.image_size", data["image_size"], 0),
-        ("eval.rollouts", ev["rollouts"], 0),
-        ("eval.every", ev["every"], 0),
-        ("optim.steps", opt["steps"], 1),
-        ("optim.warmup", opt["warmup"], 0),
-        ("optim.skip_nonfinite", opt["skip_nonfinite"], 0),
-        ("logging.every", log["every"], 1),
-        ("logging.checkpoint_every", log["checkpoint_every"], 1),
-        ("logging.record_episodes", log["record_episodes"], 1),
-    ):
-        _check_int(name, value, low)
-    _check_int("eval.horizon", ev["horizon"], 1, suite.max_horizon if suite is not None else None)
-    _check_int("threads", config["threads"], 0)
-    for name in ("data.workers", "eval.workers"):
-        value = config[name.split(".")[0]][name.split(".")[1]]
-        if value is not None:
-            _check_int(name, value, 0)
-    for step in log["record_weights_at"]:
-        if not (step == -1 or (isinstance(step, int) and 1 <= step <= opt["steps"])):
-            raise ConfigError(
-                f"logging.record_weights_at: {step!r} is not a step in 1..{opt['steps']} (or -1, the last)"
-            )
-    if not (opt["lr"] > 0 and math.isfinite(opt["lr"])):
-        raise ConfigError(f"optim.lr must be a positive number, got {opt['lr']}")
-    _check_choice("optim.decay", opt["decay"], ["cosine", "constant"])
-    if not 0 <= opt["min_lr_ratio"] <= 1:
-        raise ConfigError(f"optim.min_lr_ratio must lie in [0, 1], got {opt['min_lr_ratio']}")
-    if opt["grad_clip"] < 0:
-        raise ConfigError(f"optim.grad_clip must be >= 0 (0: off), got {opt['grad_clip']}")
-    if not 0 <= opt["ema"] < 1:
-        raise ConfigError(f"optim.ema is a decay in [0, 1) (0: off), got {opt['ema']}")
-    if len(opt["betas"]) != 2 or not all(0 <= b < 1 for b in opt["betas"]):
-        raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {opt['betas']}")
-    _device(config["device"])
-    diag = config["diagnostics"]
-    for name in ("heldout_demos", "heldout_seed"):
-        _check_int(f"diagnostics.{name}", diag[name], 0)
-    _check_int("diagnostics.train_episodes", diag["train_episodes"], 1)
-    _check_int("diagnostics.bins", diag["bins"], 2)
-    try:
-        diagnose.check_heldout_seeds(config)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    # Demonstration and evaluation variations must never overlap (checked on the largest number
-    # of attempts collection may make, before collecting; on a given dataset, on the seeds it used).
-    if ev["rollouts"]:
-        try:
-            if given is not None:
-                suite.check_dataset(given, ev["seed"], ev["rollouts"])
-            else:
-                suite.check_seeds(config)
-        except ValueError as err:
-            where = f"data.path={data['path']}" if given is not None else f"data.seed={data['seed']}"
-            raise ConfigError(f"{where} and eval.seed={ev['seed']}: {err}") from None
-    # The objective and the head are built once on placeholder data (or the given dataset's
-    # description) so that their own checks run now.
-    try:
-        placeholder = DataInfo(
-            chunk_horizon=data["chunk_horizon"], history=data["history"], image_size=data["image_size"]
-        )
-        if given is not None:
-            placeholder = DataInfo.from_metadata(given.metadata)
-        policy = make_policy(config, placeholder)
-        make_objective(config, policy)
-    except (ValueError, TypeError) as err:
-        raise ConfigError(str(err)) from None
-    _check_init(config, policy, placeholder)
-    return {"train": train_tasks, "eval": eval_tasks, "suite": suite_name}
-
-
-def _check_init(config: dict, policy: Policy, info: DataInfo) -> None:
-    """Check ``init.from`` (if set) against the policy built from ``config`` and record the source's name as
-    ``init.source`` (part of the run's identity)."""
-    init = config.setdefault("init", {"from": None})
-    unknown = sorted(set(init) - {"from", "source"})
-    if unknown:
-        raise ConfigError(f"init has no setting(s) {unknown}; valid: init.from")
-    if not init.get("from"):
-        init.pop("source", None)
-        return
-    try:
-        source = post_training.load_source(init["from"])
-        post_training.check_fits(source, config["policy"]["name"], policy, info)
-    except post_training.InitError as err:
-        raise ConfigError(str(err)) from None
-    init["source"] = source.name
-
-
-def _check_objective_numbers(obj: dict) -> None:
-    """TAR's hyper-parameters (``tar_rl.objectives.TARParams`` checks the same), named as settings."""
-    if not (math.isfinite(obj["gamma"]) and obj["gamma"] > 0):
-        raise ConfigError(
-            f"objective.gamma is a softmax temperature and must be a finite number > 0, got {obj['gamma']}"
-        )
-    if not obj["w_max"] > 0:
-        raise ConfigError(f"objective.w_max is a weight cap and must be > 0 (inf: no cap), got {obj['w_max']}")
-    if obj["cap"] == "exact" and obj["w_max"] < 1:
-        raise ConfigError(
-            f"objective.cap=exact needs objective.w_max >= 1 (weights of mean 1 cannot all lie below 1), "
-            f"got {obj['w_max']}"
-        )
-    if not (math.isfinite(obj["eps"]) and obj["eps"] > 0):
-        raise ConfigError(f"objective.eps must be a finite number > 0, got {obj['eps']}")
-    if not 0 <= obj["perturb_fraction"] <= 1:
-        raise ConfigError(f"objective.perturb_fraction must lie in [0, 1], got {obj['perturb_fraction']}")
-    if not (math.isfinite(obj["perturb_scale"]) and obj["perturb_scale"] >= 0):
-        raise ConfigError(f"objective.perturb_scale must be a finite number >= 0, got {obj['perturb_scale']}")
-
-
-def _device(name: str, local_rank: int = 0) -> torch.device:
-    """The torch device for ``device`` (under torchrun, ``cuda`` means this rank's ``cuda:LOCAL_RANK``)."""
-    if name in ("auto", "cuda") and torch.cuda.is_available() and local_rank:
-        return torch.device("cuda", local_rank)
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ConfigError(f"device={name!r} is not a device; use auto, cpu, cuda or cuda:N") from None
-    if device.type not in ("cpu", "cuda"):
-        raise ConfigError(f"device={name!r}: only cpu and cuda are supported")
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"device={name!r} but CUDA is not available here; use device=cpu or device=auto")
-    return device
-
-
-# -- Builders ----------------------------------------------------------------------------------
-
-
-def _given_dataset(path: str) -> DemoDataset:
-    """The dataset folder of ``data.path``, opened (and checked: files, sizes, format)."""
-    try:
-        return load_dataset(path)
-    except DatasetError as err:
-        raise ConfigError(f"data.path={path}: {err}") from None
-
-
-def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> DemoDataset:
-    """The demonstration dataset: ``data.path`` if given, else collected in ``data.suite`` once, then loaded
-    from ``data.root``."""
-    data = config["data"]
-    if data["path"]:
-        return _given_dataset(data["path"])
-    return SUITES[data["suite"]].build_dataset(config, tasks, data["n_demos"], data["seed"], progress)
-
-
-def make_policy(config: dict, info: DataInfo) -> Policy:
-    """The head named ``policy.name`` (registry ``tar_rl.policies.POLICIES``)."""
-    return build_policy(config["policy"], info)
-
-
-def make_objective(config: dict, policy: Policy) -> TARLoss:
-    """``TARLoss`` around the head's per-step loss, its schedule in fractions of ``optim.steps``."""
-    obj, steps = config["objective"], config["optim"]["steps"]
-    schedule = MixSchedule(start=round(obj["start"] * steps), ramp=round(obj["ramp"] * steps), shape=obj["shape"])
-    loss = TARLoss(
-        policy.loss,
-        obj["name"],
-        gamma=obj["gamma"],
-        w_max=obj["w_max"],
-        eps=obj["eps"],
-        cap=obj["cap"],
-        schedule=schedule,
-        perturb_fraction=obj["perturb_fraction"],
-        perturb_scale=obj["perturb_scale"],
-        seed=config["seed"],
-        loss_key=policy.loss_key,
-        compile_weights=obj["compile"],
-        nonfinite="propagate",  # a NaN/inf step loss reaches the trainer's optim.skip_nonfinite handling
-    )
-    if policy.event_valid is not None:
-        loss.set_keys(event_valid=policy.event_valid)
-    return loss
-
-
-def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
-    """AdamW and its schedule: linear warm-up over ``optim.warmup`` steps, then cosine or constant."""
-    opt = config["optim"]
-    optimizer = torch.optim.AdamW(params, lr=opt["lr"], betas=tuple(opt["betas"]), weight_decay=opt["weight_decay"])
-    steps, warmup, floor = opt["steps"], opt["warmup"], opt["min_lr_ratio"]
-
-    def factor(step: int) -> float:
-        if step < warmup:
-            return (step + 1) / warmup
-        if opt["decay"] == "constant":
-            return 1.0
-        progress = min(1.0, (step - warmup) / max(1, steps - warmup))
-        return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
-
-    return optimizer, torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
-
-
-def make_evaluator(
-    config: dict,
-    tasks: Sequence[str],
-    progress: bool = True,
-    shard: tuple[int, int] = (0, 1),
-    suite: str | None = None,
-) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
-    """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy.
-
-    ``validate(config)["suite"]`` names the suite of a ``data.path`` dataset. ``shard=(rank, world)``
-    runs that share of the rollouts on this process's share of the cores. A MetaWorld policy reading
-    ``pixels`` gets camera images of ``data.image_size``.
-    """
-    run_suite = SUITES[suite or config["data"]["suite"]]
-    return lambda actor: run_suite.evaluate(config, actor, list(tasks), progress, shard)
-
-
-# -- Run state ---------------------------------------------------------------------------------
+__all__ = ["Trainer", "hydra_main", "train"]
 
 
 def _eval_actor(actor: TensorDictModuleBase, ema) -> TensorDictModuleBase:
@@ -405,159 +76,7 @@ def _eval_actor(actor: TensorDictModuleBase, ema) -> TensorDictModuleBase:
     return copy.deepcopy(ema.module if ema is not None else actor).to("cpu").eval()
 
 
-def record_weights(
-    objective: TARLoss, episodes: list[tuple[str, int, TensorDict]], slice_len: int, step: int
-) -> list[tuple]:
-    """Per-step loss and TAR weight along whole demonstrations (rows of ``weights.csv``, the paper's Fig. 5).
-
-    The loss is the head's per-step loss at the current weights; the weight is
-    :func:`tar_rl.objectives.window_weights` of those losses with the objective's gamma, w_max,
-    eps and cap at full strength, whatever the run's own weighting and schedule.
-    """
-    rows = []
-    was_training = objective.training
-    objective.eval()
-    p = objective.tar_params
-    try:
-        with torch.no_grad():
-            for task, episode, td in episodes:
-                losses = objective.step_losses(td.unsqueeze(0)).squeeze(0).float().cpu()
-                weight = window_weights(losses, slice_len, gamma=p.gamma, w_max=p.w_max, eps=p.eps, cap=p.cap)
-                gripper = td["action"][..., -1].float().cpu()
-                rows += [
-                    (step, task, episode, t, float(losses[t]), float(weight[t]), float(gripper[t]))
-                    for t in range(losses.shape[0])
-                ]
-    finally:
-        objective.train(was_training)
-    return rows
-
-
-def _demo_episodes(
-    dataset: DemoDataset, tasks: Sequence[str], per_task: int, keys, device
-) -> list[tuple[str, int, TensorDict]]:
-    data = dataset.data
-    episode = data["episode"].numpy()
-    task_id = data["task_id"].numpy()
-    out = []
-    for task in tasks:
-        ids = np.unique(episode[task_id == dataset.metadata["task_ids"][task]])[:per_task]
-        for e in ids:
-            idx = np.flatnonzero(episode == e)
-            td = data[int(idx[0]) : int(idx[-1]) + 1]
-            td = td.select(*keys) if keys is not None else td
-            out.append((task, int(e), td.clone().to(device)))
-    return out
-
-
-# -- Checkpoints -------------------------------------------------------------------------------
-
-
-def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModuleBase:
-    """Rebuild the saved policy (EMA weights if the run kept them) for inference, on CPU."""
-    config = state["config"]
-    policy = make_policy(config, DataInfo.from_dict(state["data_info"]))
-    weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
-    try:
-        policy.actor.load_state_dict(weights)
-    except RuntimeError as err:
-        raise ValueError(
-            f"{path}: the saved weights do not fit the policy {config['policy']['name']!r} built from its config: {err}"
-        ) from None
-    return policy.actor.eval()
-
-
-def _with_defaults(saved: dict) -> dict:
-    """A saved config completed with the defaults of settings it does not hold."""
-
-    def merge(base: dict, over: dict) -> dict:
-        out = dict(base)
-        for key, value in over.items():
-            out[key] = merge(base[key], value) if isinstance(value, dict) and isinstance(base.get(key), dict) else value
-        return out
-
-    return merge(default_config(saved["objective"]["name"], saved["policy"]["name"]), copy.deepcopy(saved))
-
-
-def run_name(config: dict) -> str:
-    """The run's directory name: ``<objective>-<policy>-s<seed>-<hash>`` (:func:`tar_rl.runs.run_name` measured
-    against the default job of its objective and head)."""
-    return runs.run_name(config, default_config(config["objective"]["name"], config["policy"]["name"]))
-
-
-def identity(config: dict) -> dict:
-    """The settings that make the run differ from the default job (:func:`tar_rl.runs.identity`)."""
-    return runs.identity(config, default_config(config["objective"]["name"], config["policy"]["name"]))
-
-
-def identity_differences(old: dict, new: dict) -> list[str]:
-    """``key.path: old -> new`` for every setting of a run's identity that differs between two configs (settings
-    a config lacks read as their defaults); empty when both name the same run."""
-    return config_differences(runs.identity(_with_defaults(old), {}), runs.identity(_with_defaults(new), {}))
-
-
-def evaluate_checkpoint(
-    path: str | Path,
-    tasks: Sequence[str] | None = None,
-    rollouts: int | None = None,
-    seed: int | None = None,
-    horizon: int | None = None,
-    workers: int | None = None,
-    out: str | Path | None = None,
-    progress: bool = True,
-) -> pd.DataFrame:
-    """Evaluate a saved policy; settings default to the run's ``eval`` config. Prints the table.
-
-    Writes the rollouts to ``out`` (default ``eval-<seed>.csv`` beside the checkpoint) and returns them.
-
-    Raises:
-        FileNotFoundError: no checkpoint there. ValueError / ConfigError: not a checkpoint, a
-        policy that does not fit it, or bad settings (named).
-    """
-    path = Path(path)
-    state = load_checkpoint(path)
-    config = _with_defaults(state["config"])
-    # Evaluating a saved policy needs neither its post-training source nor held-out data.
-    config["init"] = {"from": None}
-    config["diagnostics"]["heldout_demos"] = 0
-    ev = config["eval"]
-    for key, value in (("rollouts", rollouts), ("seed", seed), ("horizon", horizon), ("workers", workers)):
-        if value is not None:
-            ev[key] = value
-    if tasks:
-        ev["tasks"] = list(tasks)
-    checked = validate(config)
-    actor = policy_from_checkpoint(state, path)
-    rollouts_df = make_evaluator(config, checked["eval"], progress=progress, suite=checked["suite"])(actor)
-    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev['seed']}.csv"
-    write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
-    print(f"{path} (step {state['step']}), {ev['rollouts']} rollouts per task, seed {ev['seed']}; rollouts in {target}")
-    print_table(summarize(rollouts_df))
-    return rollouts_df
-
-
 # -- The job -----------------------------------------------------------------------------------
-
-
-def _prepare_run_dir(run_dir: Path) -> None:
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write(run_dir / ".write-test", lambda f: f.write("ok"))
-        (run_dir / ".write-test").unlink()
-    except OSError as err:
-        raise ConfigError(f"cannot write to the run directory {run_dir}: {err}") from None
-
-
-def _last_checkpoint(run_dir: Path) -> str:
-    """Where a stopped run resumes from, in words: the last checkpoint's step and file, or that there is none."""
-    path = run_dir / CHECKPOINT
-    try:
-        step = load_checkpoint(path)["step"]
-    except FileNotFoundError:
-        return f"no checkpoint was written yet in {run_dir}"
-    except ValueError:
-        return f"{path} cannot be read"
-    return f"the last good checkpoint (step {step}) is kept in {path}"
 
 
 def _interruption(run_dir: Path, trainer: Trainer | None) -> str:
@@ -568,53 +87,7 @@ def _interruption(run_dir: Path, trainer: Trainer | None) -> str:
         where = f"at step {trainer.step} of {trainer.steps}"
     else:
         where = f"in the final evaluation (after step {trainer.steps})"
-    return f"interrupted {where}; {_last_checkpoint(run_dir)}: run the same command to resume"
-
-
-def _check_resumable(run_dir: Path, config: dict) -> dict | None:
-    """The checkpoint to resume from (None for a new run); refuses a folder whose run has other settings.
-
-    Before its first checkpoint a started run is known by its ``config.yaml``, which is compared the same way.
-    """
-    path = run_dir / CHECKPOINT
-    if not path.exists():
-        _check_same_run(run_dir, _started_config(run_dir), config)
-        return None
-    try:
-        state = load_checkpoint(path)
-    except ValueError as err:
-        raise ConfigError(
-            f"{str(err).splitlines()[0]}; remove {path} to start the run again from step 0, or choose another run_dir"
-        ) from err
-    _check_same_run(run_dir, state["config"], config)
-    return state
-
-
-def _started_config(run_dir: Path) -> dict | None:
-    """The config a started run wrote into ``run_dir/config.yaml`` (None if there is none)."""
-    path = run_dir / "config.yaml"
-    if not path.exists():
-        return None
-    from omegaconf import OmegaConf
-
-    try:
-        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-        if not isinstance(saved, dict):
-            raise ValueError(f"it holds a {type(saved).__name__}, not a config")
-    except Exception as err:  # OmegaConf raises many kinds for a damaged YAML file
-        first = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise ConfigError(f"{path} cannot be read ({first}); remove it or choose another run_dir") from err
-    return saved
-
-
-def _check_same_run(run_dir: Path, saved: dict | None, config: dict) -> None:
-    if saved is None:
-        return
-    diff = identity_differences(saved, config)
-    if diff:
-        raise ConfigError(
-            f"{run_dir} holds a run with other settings ({'; '.join(diff)}); choose another run_dir or remove it"
-        )
+    return f"interrupted {where}; {last_checkpoint(run_dir)}: run the same command to resume"
 
 
 class Trainer:
@@ -631,7 +104,7 @@ class Trainer:
         self.config, self.tasks, self.run_dir, self.dist = config, tasks, run_dir, dist
         data_cfg, self.opt_cfg, self.log_cfg = config["data"], config["optim"], config["logging"]
         self.progress = self.log_cfg["progress"] and dist.main
-        self.device = _device(config["device"], dist.local_rank)
+        self.device = torch_device(config["device"], dist.local_rank)
         if config["threads"]:
             torch.set_num_threads(config["threads"])
         torch.manual_seed(config["seed"])
@@ -682,7 +155,7 @@ class Trainer:
         )
         self.episodes = []
         if self.record_at:
-            self.episodes = _demo_episodes(
+            self.episodes = demo_episodes(
                 self.dataset, tasks["train"], self.log_cfg["record_episodes"], self.policy.keys, self.device
             )
         self.logs = RunLogs(run_dir)
@@ -788,7 +261,7 @@ class Trainer:
                 allowed = self.opt_cfg["skip_nonfinite"]
                 raise TrainingError(
                     f"non-finite loss or gradient at step {self.step} of {self.steps} (loss={float(loss.detach())}; "
-                    f"{self.skipped} such step(s), optim.skip_nonfinite={allowed}); {_last_checkpoint(self.run_dir)}: "
+                    f"{self.skipped} such step(s), optim.skip_nonfinite={allowed}); {last_checkpoint(self.run_dir)}: "
                     "start a new run with a lower optim.lr, or allow skipped steps with optim.skip_nonfinite=N"
                 )
             return None
@@ -886,7 +359,7 @@ class Trainer:
             self.heldout,
             self.tasks["train"],
             self.logs.metrics,
-            episodes_of=lambda data, tasks, n: _demo_episodes(data, tasks, n, keys, device),
+            episodes_of=lambda data, tasks, n: demo_episodes(data, tasks, n, keys, device),
             record=lambda objective, episodes: record_weights(objective, episodes, slice_len, self.steps),
         )
         self.objective.train()
@@ -977,16 +450,16 @@ def train(cfg: Any) -> Path:
     """
     config = resolve_config(cfg)
     tasks = validate(config)
-    dist = distributed.init(_device(config["device"]).type)
+    dist = distributed.init(torch_device(config["device"]).type)
     held = contextlib.ExitStack()
     try:
         _agree_across_ranks(config, dist)
         run_dir = Path(config["run_dir"] or Path(config["runs_root"]) / run_name(config))
         if dist.main:
-            _prepare_run_dir(run_dir)
+            prepare_run_dir(run_dir)
             held.enter_context(run_lock(run_dir))
         dist.barrier()
-        resume = _check_resumable(run_dir, config)
+        resume = check_resumable(run_dir, config)
         if resume is not None and resume.get("finished") and (run_dir / "summary.json").exists():
             if dist.main:
                 print(f"{run_dir}: finished already ({resume['step']} steps); not run again")
@@ -1021,7 +494,7 @@ def train(cfg: Any) -> Path:
         return run_dir
     except DiskFullError as err:
         raise TrainingError(
-            f"{err.what}; {_last_checkpoint(run_dir)}: free some space, then run the same command to resume"
+            f"{err.what}; {last_checkpoint(run_dir)}: free some space, then run the same command to resume"
         ) from err
     finally:
         held.close()

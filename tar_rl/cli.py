@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         os.environ[DEBUG_ENV] = "1"  # Hydra's switch for whole tracebacks, read by every command here
     # train and report parse their own arguments (Hydra's overrides; the report's options).
     if argv and argv[0] == "train":
-        from tar_rl.recipes.offline_bc import hydra_main
+        from tar_rl.recipes import hydra_main
 
         return hydra_main(argv[1:])
     if argv and argv[0] == "report":
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         return report_main(argv[1:])
     args = _parser().parse_args(argv)
     if args.command == "eval":
-        from tar_rl.recipes.offline_bc import ConfigError, evaluate_checkpoint
+        from tar_rl.recipes import ConfigError, evaluate_checkpoint
 
         try:
             evaluate_checkpoint(

@@ -6,8 +6,8 @@ from pathlib import Path
 
 from hydra import compose, initialize
 
+from tar_rl.recipes import resolve_config
 from tar_rl.recipes.config import register_configs
-from tar_rl.recipes.offline_bc import resolve_config
 
 TASK = "reach"
 

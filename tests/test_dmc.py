@@ -193,7 +193,7 @@ def _dmc_config(tmp_path, *overrides):
 
 
 def test_recipe_trains_and_evaluates_on_dm_control(tmp_path):
-    from tar_rl.recipes.offline_bc import evaluate_checkpoint, train
+    from tar_rl.recipes import evaluate_checkpoint, train
 
     run = train(_dmc_config(tmp_path))
     summary = json.loads((run / "summary.json").read_text())
@@ -217,7 +217,7 @@ def test_recipe_trains_and_evaluates_on_dm_control(tmp_path):
     ],
 )
 def test_dm_control_settings_refused_before_work(tmp_path, override, message):
-    from tar_rl.recipes.offline_bc import ConfigError, train
+    from tar_rl.recipes import ConfigError, train
 
     with pytest.raises(ConfigError, match=message):
         train(_dmc_config(tmp_path, override))

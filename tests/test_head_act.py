@@ -19,7 +19,7 @@ from tensordict import TensorDict
 
 from tar_rl import TARLoss
 from tar_rl.policies import POLICIES, ACTConfig, DataInfo, build_policy
-from tar_rl.recipes.offline_bc import policy_from_checkpoint, train
+from tar_rl.recipes import policy_from_checkpoint, train
 from tar_rl.runs import load_checkpoint
 
 INFO = DataInfo(obs_dim=3, action_dim=2, n_tasks=2, chunk_horizon=3)

@@ -539,8 +539,8 @@ def data_root(tmp_path_factory):
 def test_a_tiny_training_job_runs_each_head(tmp_path, data_root, name):
     from hydra import compose, initialize
 
+    from tar_rl.recipes import resolve_config, train
     from tar_rl.recipes.config import register_configs
-    from tar_rl.recipes.offline_bc import resolve_config, train
     from tar_rl.runs import load_checkpoint
 
     overrides = [

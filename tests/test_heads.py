@@ -24,8 +24,8 @@ from tensordict import TensorDict
 from tar_rl import TARLoss
 from tar_rl.collectors.tasks import TASKS
 from tar_rl.policies import POLICIES, DataInfo, build_policy
+from tar_rl.recipes import make_objective, train
 from tar_rl.recipes.config import ObjectiveConfig
-from tar_rl.recipes.offline_bc import make_objective, train
 
 HEADS = sorted(POLICIES)
 B, L, H, K = 4, 16, 8, 2

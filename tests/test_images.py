@@ -25,8 +25,8 @@ from tar_rl.collectors.evaluate import evaluate
 from tar_rl.data import build_dataset
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.common import ConvEncoder
+from tar_rl.recipes import make_objective, policy_from_checkpoint, train
 from tar_rl.recipes.config import ObjectiveConfig
-from tar_rl.recipes.offline_bc import make_objective, policy_from_checkpoint, train
 from tar_rl.runs import load_checkpoint
 
 S = 32

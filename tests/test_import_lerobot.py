@@ -203,7 +203,7 @@ def test_clip_and_refused_inputs(folder, tmp_path):
 def test_cli_import_then_train_without_evaluation(folder, tmp_path, capsys):
     from recipe_helpers import compose_config
 
-    from tar_rl.recipes.offline_bc import train
+    from tar_rl.recipes import train
 
     path, _ = folder
     assert main(["data", "import", "lerobot", str(path), "--obs-keys", KEYS, "--out", str(tmp_path / "out")]) == 0

@@ -358,7 +358,7 @@ def _train_config(tmp_path, ds, *overrides):
 
 
 def test_train_on_imported_dataset_without_evaluation(tmp_path):
-    from tar_rl.recipes.offline_bc import train
+    from tar_rl.recipes import train
     from tar_rl.runs import load_checkpoint
 
     ds = _two_task_dataset(tmp_path)
@@ -382,7 +382,7 @@ def test_train_on_imported_dataset_without_evaluation(tmp_path):
 
 
 def test_imported_dataset_with_instructions_trains_instruction_conditioning(tmp_path):
-    from tar_rl.recipes.offline_bc import train
+    from tar_rl.recipes import train
 
     ds = _two_task_dataset(tmp_path, instructions=True)
     run = train(_train_config(tmp_path, ds, "policy.task_conditioning=instruction"))
@@ -390,7 +390,7 @@ def test_imported_dataset_with_instructions_trains_instruction_conditioning(tmp_
 
 
 def test_data_path_bad_settings_are_refused_before_work(tmp_path):
-    from tar_rl.recipes.offline_bc import ConfigError, train
+    from tar_rl.recipes import ConfigError, train
 
     ds = _two_task_dataset(tmp_path)
     refused = r"robomimic demonstrations of \['Lift', 'open_the_drawer'\].*eval\.rollouts=0"

@@ -335,7 +335,7 @@ def _train_config(tmp_path, *overrides):
 
 def test_recipe_refuses_libero_without_an_imported_dataset(tmp_path):
     from tar_rl.collectors.suites import SUITES
-    from tar_rl.recipes.offline_bc import ConfigError, validate
+    from tar_rl.recipes import ConfigError, validate
 
     with pytest.raises(ConfigError, match=r"data\.suite=libero needs data\.path: LIBERO demonstrations cannot be"):
         validate(_train_config(tmp_path, "data.suite=libero"))
@@ -345,7 +345,7 @@ def test_recipe_refuses_libero_without_an_imported_dataset(tmp_path):
 
 
 def test_recipe_trains_on_imported_libero_files_and_checks_evaluation_before_work(tmp_path, no_libero):
-    from tar_rl.recipes.offline_bc import ConfigError, train, validate
+    from tar_rl.recipes import ConfigError, train, validate
 
     ds = _libero_dataset(tmp_path)
     base = (f"data.path={ds.path}", "data.suite=libero")
@@ -371,7 +371,7 @@ def test_recipe_trains_on_imported_libero_files_and_checks_evaluation_before_wor
 
 
 def test_without_data_suite_libero_imported_libero_files_are_not_evaluated(tmp_path):
-    from tar_rl.recipes.offline_bc import ConfigError, validate
+    from tar_rl.recipes import ConfigError, validate
 
     ds = _libero_dataset(tmp_path)
     with pytest.raises(ConfigError, match=r"robomimic demonstrations of .*eval\.rollouts=0"):
@@ -405,7 +405,7 @@ def test_libero_suites_resolve_to_their_ten_tasks():
 @_robosuite_warns
 def test_recipe_refuses_evaluation_tasks_outside_the_dataset(tmp_path):
     _needs_libero()
-    from tar_rl.recipes.offline_bc import ConfigError, validate
+    from tar_rl.recipes import ConfigError, validate
 
     ds = _libero_dataset(tmp_path)
     base = (f"data.path={ds.path}", "data.suite=libero", "eval.rollouts=2")
@@ -439,7 +439,7 @@ def test_a_real_libero_rollout(monkeypatch):
 @_robosuite_warns
 def test_import_train_evaluate_on_libero(tmp_path, monkeypatch):
     _needs_libero()
-    from tar_rl.recipes.offline_bc import train
+    from tar_rl.recipes import train
 
     monkeypatch.setenv("MUJOCO_GL", "egl")
     monkeypatch.setitem(libero.SUITE_HORIZONS, "libero_spatial", 4)  # a 4-step budget keeps the rollouts short

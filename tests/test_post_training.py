@@ -17,7 +17,7 @@ from tensordict import TensorDict
 
 from tar_rl import distributed
 from tar_rl.collectors.tasks import task_index
-from tar_rl.recipes.offline_bc import ConfigError, Trainer, run_name, train, validate
+from tar_rl.recipes import ConfigError, Trainer, run_name, train, validate
 from tar_rl.runs import CHECKPOINT, load_checkpoint, save_checkpoint
 
 
@@ -53,7 +53,7 @@ def _batch(n: int = 6) -> TensorDict:
 def test_first_forward_equals_the_source_and_unseen_task_rows_stay_fresh(tmp_path, data_root, source):
     state = load_checkpoint(source / CHECKPOINT)
     trainer = _trainer(_post(tmp_path, data_root, source))
-    from tar_rl.recipes.offline_bc import policy_from_checkpoint
+    from tar_rl.recipes import policy_from_checkpoint
 
     source_actor = policy_from_checkpoint(state)
     with torch.no_grad():

@@ -30,8 +30,7 @@ from tar_rl import TARLoss
 from tar_rl.data import SegmentSampler
 from tar_rl.objectives import WEIGHTINGS
 from tar_rl.policies import POLICIES, DataInfo
-from tar_rl.recipes.config import PRESETS, register_configs
-from tar_rl.recipes.offline_bc import (
+from tar_rl.recipes import (
     ConfigError,
     TrainingError,
     evaluate_checkpoint,
@@ -42,6 +41,7 @@ from tar_rl.recipes.offline_bc import (
     train,
     validate,
 )
+from tar_rl.recipes.config import PRESETS, register_configs
 from tar_rl.runs import CHECKPOINT, load_checkpoint
 
 # -- Config -------------------------------------------------------------------------------------
@@ -600,7 +600,7 @@ def test_settings_at_their_default_keep_run_names():
     # before a setting existed (the setting absent) and one holding its default are the same run.
     import copy
 
-    from tar_rl.recipes.offline_bc import identity, run_name
+    from tar_rl.recipes import identity, run_name
     from tar_rl.runs import config_differences
 
     cfg = compose_config()

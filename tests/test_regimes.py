@@ -248,7 +248,7 @@ def test_hardest_tasks_are_the_lowest_success_ties_by_name():
 def test_every_committed_run_folder_is_named_by_its_identity():
     import yaml
 
-    from tar_rl.recipes.offline_bc import run_name
+    from tar_rl.recipes import run_name
 
     folders = sorted(p for p in (COMMITTED / "runs").iterdir() if p.is_dir())
     assert folders, "no committed run"

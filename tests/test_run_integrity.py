@@ -23,7 +23,7 @@ from recipe_helpers import TASK, tiny
 
 from tar_rl import io
 from tar_rl.data import SegmentSampler
-from tar_rl.recipes.offline_bc import ConfigError, TrainingError, train
+from tar_rl.recipes import ConfigError, TrainingError, train
 from tar_rl.runlock import LOCK_FILE, RunFolderBusy, run_lock
 from tar_rl.runs import CHECKPOINT, load_checkpoint
 

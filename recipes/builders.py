@@ -1,0 +1,124 @@
+"""The ``make_*`` builders of the training job: dataset, policy head, objective, optimiser, evaluator, device."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import pandas as pd
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from tar_rl.collectors.suites import SUITES
+from tar_rl.data import DatasetError, DemoDataset, load_dataset
+from tar_rl.objectives import MixSchedule, TARLoss
+from tar_rl.policies import DataInfo, Policy, build_policy
+
+from .errors import ConfigError
+
+__all__ = [
+    "given_dataset",
+    "make_dataset",
+    "make_evaluator",
+    "make_objective",
+    "make_optimizer",
+    "make_policy",
+    "torch_device",
+]
+
+
+def torch_device(name: str, local_rank: int = 0) -> torch.device:
+    """The torch device for ``device`` (under torchrun, ``cuda`` means this rank's ``cuda:LOCAL_RANK``)."""
+    if name in ("auto", "cuda") and torch.cuda.is_available() and local_rank:
+        return torch.device("cuda", local_rank)
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"device={name!r} is not a device; use auto, cpu, cuda or cuda:N") from None
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigError(f"device={name!r}: only cpu and cuda are supported")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device={name!r} but CUDA is not available here; use device=cpu or device=auto")
+    return device
+
+
+def given_dataset(path: str) -> DemoDataset:
+    """The dataset folder of ``data.path``, opened (and checked: files, sizes, format)."""
+    try:
+        return load_dataset(path)
+    except DatasetError as err:
+        raise ConfigError(f"data.path={path}: {err}") from None
+
+
+def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> DemoDataset:
+    """The demonstration dataset: ``data.path`` if given, else collected in ``data.suite`` once, then loaded
+    from ``data.root``."""
+    data = config["data"]
+    if data["path"]:
+        return given_dataset(data["path"])
+    return SUITES[data["suite"]].build_dataset(config, tasks, data["n_demos"], data["seed"], progress)
+
+
+def make_policy(config: dict, info: DataInfo) -> Policy:
+    """The head named ``policy.name`` (registry ``tar_rl.policies.POLICIES``)."""
+    return build_policy(config["policy"], info)
+
+
+def make_objective(config: dict, policy: Policy) -> TARLoss:
+    """``TARLoss`` around the head's per-step loss, its schedule in fractions of ``optim.steps``."""
+    obj, steps = config["objective"], config["optim"]["steps"]
+    schedule = MixSchedule(start=round(obj["start"] * steps), ramp=round(obj["ramp"] * steps), shape=obj["shape"])
+    loss = TARLoss(
+        policy.loss,
+        obj["name"],
+        gamma=obj["gamma"],
+        w_max=obj["w_max"],
+        eps=obj["eps"],
+        cap=obj["cap"],
+        schedule=schedule,
+        perturb_fraction=obj["perturb_fraction"],
+        perturb_scale=obj["perturb_scale"],
+        seed=config["seed"],
+        loss_key=policy.loss_key,
+        compile_weights=obj["compile"],
+        nonfinite="propagate",  # a NaN/inf step loss reaches the trainer's optim.skip_nonfinite handling
+    )
+    if policy.event_valid is not None:
+        loss.set_keys(event_valid=policy.event_valid)
+    return loss
+
+
+def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
+    """AdamW and its schedule: linear warm-up over ``optim.warmup`` steps, then cosine or constant."""
+    opt = config["optim"]
+    optimizer = torch.optim.AdamW(params, lr=opt["lr"], betas=tuple(opt["betas"]), weight_decay=opt["weight_decay"])
+    steps, warmup, floor = opt["steps"], opt["warmup"], opt["min_lr_ratio"]
+
+    def factor(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        if opt["decay"] == "constant":
+            return 1.0
+        progress = min(1.0, (step - warmup) / max(1, steps - warmup))
+        return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
+
+    return optimizer, torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def make_evaluator(
+    config: dict,
+    tasks: Sequence[str],
+    progress: bool = True,
+    shard: tuple[int, int] = (0, 1),
+    suite: str | None = None,
+) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
+    """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy.
+
+    ``validate(config)["suite"]`` names the suite of a ``data.path`` dataset. ``shard=(rank, world)``
+    runs that share of the rollouts on this process's share of the cores. A MetaWorld policy reading
+    ``pixels`` gets camera images of ``data.image_size``.
+    """
+    run_suite = SUITES[suite or config["data"]["suite"]]
+    return lambda actor: run_suite.evaluate(config, actor, list(tasks), progress, shard)

@@ -1,0 +1,77 @@
+"""``tar-rl eval``: a saved policy rebuilt from its checkpoint and evaluated on its suite."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+from tensordict.nn import TensorDictModuleBase
+
+from tar_rl.io import write_csv_atomic
+from tar_rl.metrics import summarize
+from tar_rl.policies import DataInfo
+from tar_rl.runs import (
+    load_checkpoint,
+    print_table,
+)
+
+from .builders import make_evaluator, make_policy
+from .rundir import with_defaults
+from .validate import validate
+
+__all__ = ["evaluate_checkpoint", "policy_from_checkpoint"]
+
+
+def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModuleBase:
+    """Rebuild the saved policy (EMA weights if the run kept them) for inference, on CPU."""
+    config = state["config"]
+    policy = make_policy(config, DataInfo.from_dict(state["data_info"]))
+    weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
+    try:
+        policy.actor.load_state_dict(weights)
+    except RuntimeError as err:
+        raise ValueError(
+            f"{path}: the saved weights do not fit the policy {config['policy']['name']!r} built from its config: {err}"
+        ) from None
+    return policy.actor.eval()
+
+
+def evaluate_checkpoint(
+    path: str | Path,
+    tasks: Sequence[str] | None = None,
+    rollouts: int | None = None,
+    seed: int | None = None,
+    horizon: int | None = None,
+    workers: int | None = None,
+    out: str | Path | None = None,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Evaluate a saved policy; settings default to the run's ``eval`` config. Prints the table.
+
+    Writes the rollouts to ``out`` (default ``eval-<seed>.csv`` beside the checkpoint) and returns them.
+
+    Raises:
+        FileNotFoundError: no checkpoint there. ValueError / ConfigError: not a checkpoint, a
+        policy that does not fit it, or bad settings (named).
+    """
+    path = Path(path)
+    state = load_checkpoint(path)
+    config = with_defaults(state["config"])
+    # Evaluating a saved policy needs neither its post-training source nor held-out data.
+    config["init"] = {"from": None}
+    config["diagnostics"]["heldout_demos"] = 0
+    ev = config["eval"]
+    for key, value in (("rollouts", rollouts), ("seed", seed), ("horizon", horizon), ("workers", workers)):
+        if value is not None:
+            ev[key] = value
+    if tasks:
+        ev["tasks"] = list(tasks)
+    checked = validate(config)
+    actor = policy_from_checkpoint(state, path)
+    rollouts_df = make_evaluator(config, checked["eval"], progress=progress, suite=checked["suite"])(actor)
+    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev['seed']}.csv"
+    write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
+    print(f"{path} (step {state['step']}), {ev['rollouts']} rollouts per task, seed {ev['seed']}; rollouts in {target}")
+    print_table(summarize(rollouts_df))
+    return rollouts_df

@@ -1,0 +1,59 @@
+"""Per-step loss and TAR weight along whole demonstrations (``weights.csv``, the paper's Fig. 5)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from tar_rl.data import DemoDataset
+from tar_rl.objectives import TARLoss, window_weights
+
+__all__ = ["demo_episodes", "record_weights"]
+
+
+def record_weights(
+    objective: TARLoss, episodes: list[tuple[str, int, TensorDict]], slice_len: int, step: int
+) -> list[tuple]:
+    """Per-step loss and TAR weight along whole demonstrations (rows of ``weights.csv``, the paper's Fig. 5).
+
+    The loss is the head's per-step loss at the current weights; the weight is
+    :func:`tar_rl.objectives.window_weights` of those losses with the objective's gamma, w_max,
+    eps and cap at full strength, whatever the run's own weighting and schedule.
+    """
+    rows = []
+    was_training = objective.training
+    objective.eval()
+    p = objective.tar_params
+    try:
+        with torch.no_grad():
+            for task, episode, td in episodes:
+                losses = objective.step_losses(td.unsqueeze(0)).squeeze(0).float().cpu()
+                weight = window_weights(losses, slice_len, gamma=p.gamma, w_max=p.w_max, eps=p.eps, cap=p.cap)
+                gripper = td["action"][..., -1].float().cpu()
+                rows += [
+                    (step, task, episode, t, float(losses[t]), float(weight[t]), float(gripper[t]))
+                    for t in range(losses.shape[0])
+                ]
+    finally:
+        objective.train(was_training)
+    return rows
+
+
+def demo_episodes(
+    dataset: DemoDataset, tasks: Sequence[str], per_task: int, keys, device
+) -> list[tuple[str, int, TensorDict]]:
+    data = dataset.data
+    episode = data["episode"].numpy()
+    task_id = data["task_id"].numpy()
+    out = []
+    for task in tasks:
+        ids = np.unique(episode[task_id == dataset.metadata["task_ids"][task]])[:per_task]
+        for e in ids:
+            idx = np.flatnonzero(episode == e)
+            td = data[int(idx[0]) : int(idx[-1]) + 1]
+            td = td.select(*keys) if keys is not None else td
+            out.append((task, int(e), td.clone().to(device)))
+    return out
