@@ -55,7 +55,7 @@ import numpy as np
 from tar_rl.io import write_csv_atomic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import git_commit, median_iqr
+from common import git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "data.csv"
@@ -356,15 +356,7 @@ def bench_startup(quick: bool, workers: int, reps: int, check_reps: int, root: s
             _job_startup(overrides, cwd)  # warm-up: the page cache, Python's bytecode cache
         startup = [_job_startup(overrides, cwd) * 1e3 for _ in range(reps)]
     variants = {"load_dataset": lambda: load_dataset(ds.path), "check_content": lambda: check_content(ds.path)}
-    times = {k: [] for k in variants}
-    rng = random.Random(0)
-    for _ in range(check_reps):
-        order = list(variants)
-        rng.shuffle(order)
-        for k in order:
-            t0 = time.perf_counter()
-            variants[k]()
-            times[k].append((time.perf_counter() - t0) * 1e3)
+    times = {k: v * 1e3 for k, v in interleaved(variants, check_reps, seed=0).items()}
     base, _ = median_iqr(startup)
     rows = []
     for k, ts in {"job_startup": startup, **times}.items():

@@ -9,6 +9,7 @@ import os
 import pandas as pd
 import pytest
 import torch
+from disk_helpers import FullDisk
 
 from tar_rl import io
 from tar_rl.errors import DiskFullError
@@ -35,25 +36,6 @@ def test_json_round_trip(tmp_path):
     assert json.loads(path.read_text()) == {"tasks": ["reach-v3"], "n": 3}
 
 
-class _FullDisk:
-    """A file on a full disk: every write fails with ENOSPC, as the OS reports it."""
-
-    def __init__(self, f):
-        self._f = f
-
-    def write(self, data):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    def __getattr__(self, name):
-        return getattr(self._f, name)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self._f.close()
-
-
 @pytest.mark.parametrize(
     ("name", "write"),
     [
@@ -66,7 +48,7 @@ def test_a_full_disk_names_the_file_and_keeps_the_old_one(tmp_path, monkeypatch,
     path = tmp_path / name
     path.write_bytes(b"old content")
     real_open = io._open
-    monkeypatch.setattr(io, "_open", lambda fd, binary, target: _FullDisk(real_open(fd, binary, target)))
+    monkeypatch.setattr(io, "_open", lambda fd, binary, target: FullDisk(real_open(fd, binary, target)))
     with pytest.raises(DiskFullError) as info:
         write(path)
     assert str(info.value) == (

@@ -8,7 +8,6 @@ stalling CI.
 
 from __future__ import annotations
 
-import errno
 import json
 import os
 import select
@@ -19,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+from disk_helpers import FullDisk
 from recipe_helpers import TASK, tiny
 
 from tar_rl import io
@@ -176,25 +176,6 @@ def test_a_started_run_folder_refuses_another_config_before_its_first_checkpoint
     assert load_checkpoint(run_dir)["step"] == 30
 
 
-class _FullDisk:
-    """A file on a full disk: every write fails with ENOSPC, as the OS reports it."""
-
-    def __init__(self, f):
-        self._f = f
-
-    def write(self, data):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    def __getattr__(self, name):
-        return getattr(self._f, name)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self._f.close()
-
-
 @pytest.mark.parametrize(
     ("target", "nth", "kept"),
     [
@@ -216,7 +197,7 @@ def test_a_full_disk_stops_with_one_line_and_the_last_checkpoint_loadable(
         if path.name == target:
             writes["n"] += 1
             if writes["n"] == nth:
-                return _FullDisk(f)
+                return FullDisk(f)
         return f
 
     monkeypatch.setattr(io, "_open", open_temp)
