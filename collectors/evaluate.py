@@ -48,7 +48,6 @@ from tensordict.nn import TensorDictModuleBase
 from tar_rl.collectors import tasks
 from tar_rl.collectors.envs import make_batched_env
 from tar_rl.errors import children_ignore_sigint
-from tar_rl.io import write_csv_atomic
 
 __all__ = [
     "COLUMNS",
@@ -58,7 +57,6 @@ __all__ = [
     "close_workers",
     "default_envs_per_worker",
     "evaluate",
-    "write_rollouts",
 ]
 
 MAX_HORIZON = 500  # MetaWorld's own episode length: its envs raise past step 500
@@ -66,10 +64,9 @@ ACTION_DIM = 4
 # Default batch size of a worker: each batch step costs ~0.8 ms of policy call and TorchRL
 # conversion whatever the batch size (measured with a 39-256-256-4 MLP on a 2-core machine), and
 # each MetaWorld env a worker builds costs ~0.14 s (its XML model). For S env steps at most, a
-# batch of B envs costs ~0.8e-3 * S / B + 0.14 * B, least at B = sqrt(S * 0.8e-3 / 0.14).
-# (Later measurements: a copied env costs ~6 ms, but 24 or 36 slots for 60 rollouts of the
-# benchmark policy were no faster than the default 13: more envs per batch step run colder in
-# the CPU caches. The default is kept; see benchmarks/bench_eval.py.)
+# batch of B envs costs ~0.8e-3 * S / B + 0.14 * B, least at B = sqrt(S * 0.8e-3 / 0.14). A
+# copied env costs ~6 ms, yet larger batches (24 or 36 slots for 60 rollouts) are no faster:
+# more envs per batch step run colder in the CPU caches (benchmarks/bench_eval.py).
 _BATCH_STEP_OVERHEAD_S = 0.8e-3
 _ENV_BUILD_S = 0.14
 _MIN_BATCH, _MAX_BATCH = 4, 32
@@ -589,8 +586,3 @@ def _check_action(action, slot, running, step) -> None:
         raise ValueError(
             f"the policy returned non-finite actions for {where}: {action[torch.as_tensor(bad[:3])].tolist()}"
         )
-
-
-def write_rollouts(df: pd.DataFrame, path: str | os.PathLike) -> None:
-    """Write the rollout table as CSV atomically (``tar_rl.io.write_csv_atomic``)."""
-    write_csv_atomic(df, path)

@@ -2,7 +2,7 @@
 
 ``PixelRenderer(size)`` renders an environment's current scene from a fixed camera to a
 ``[3, size, size]`` uint8 array (channels first, the layout the conv encoders read), with shadows
-off (about 4x cheaper, see ``../shared/reference/metaworld.md``). The default camera is MetaWorld's
+off (about 4x cheaper than with shadows). The default camera is MetaWorld's
 ``corner2``, whose image comes out upside down: it is flipped upright.
 
 MuJoCo chooses its OpenGL backend once, when it is imported, from the environment variable
@@ -19,10 +19,9 @@ import os
 
 import numpy as np
 
-__all__ = ["CAMERA", "HEADLESS_BACKENDS", "PixelRenderer", "RenderError", "headless_gl"]
+__all__ = ["CAMERA", "PixelRenderer", "RenderError", "headless_gl"]
 
 CAMERA = "corner2"
-HEADLESS_BACKENDS = ("egl", "osmesa")
 
 
 class RenderError(RuntimeError):

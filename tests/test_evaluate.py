@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -13,7 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from tar_rl.collectors import evaluate as ev
 from tar_rl.collectors import tasks
 from tar_rl.collectors.envs import make_metaworld_env
-from tar_rl.collectors.evaluate import ExpertPolicy, evaluate, write_rollouts
+from tar_rl.collectors.evaluate import ExpertPolicy, evaluate
 
 EASY = ["reach-v3", "button-press-topdown-v3", "drawer-close-v3"]
 
@@ -237,16 +235,6 @@ def test_slot_count_does_not_change_the_rows(expert_rows, envs_per_worker):
 def test_two_workers_give_the_same_rows(expert_rows):
     df = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
     pd.testing.assert_frame_equal(df, expert_rows)
-
-
-def test_write_rollouts_atomic(tmp_path, expert_rows):
-    path = tmp_path / "sub" / "rollouts.csv"
-    write_rollouts(expert_rows, path)
-    back = pd.read_csv(path, keep_default_na=False)
-    assert os.listdir(path.parent) == ["rollouts.csv"]
-    assert list(back["steps"]) == list(expert_rows["steps"])
-    assert list(back["success"]) == list(expert_rows["success"])
-    np.testing.assert_allclose(back["return"], expert_rows["return"], rtol=1e-12)
 
 
 def test_make_metaworld_env_entries():

@@ -1,7 +1,7 @@
 """The MetaWorld task registry (tar_rl.collectors.tasks): names, ordering, groups, instructions, variations.
 
-Expected group members are typed from /work/shared/reference/metaworld.md (the TAR paper's
-28/11/6/5 grouping), not copied from the module. Only the last tests build MetaWorld objects
+Expected group members are typed from the TAR paper's 28/11/6/5 grouping of MetaWorld's tasks,
+not copied from the module. Only the last tests build MetaWorld objects
 (one ``MT1`` costs about a second).
 """
 
