@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from tar_rl.collectors.suites import SUITES, Suite, suite_for
+from tar_rl.data import DemoDataset
 from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS
 from tar_rl.policies import POLICIES, DataInfo, Policy
 
@@ -63,7 +64,31 @@ def validate(config: dict) -> dict:
     Raises:
         ConfigError: naming the setting and the valid choices or range.
     """
-    obj, data, ev, opt, log = (config[k] for k in ("objective", "data", "eval", "optim", "logging"))
+    _check_objective(config)
+    suite, given, tasks = _check_suite_and_tasks(config)
+    _check_numbers(config, suite)
+    torch_device(config["device"])
+    _check_diagnostics(config)
+    _check_seeds(config, suite, given)
+    # The objective and the head are built once on placeholder data (or the given dataset's
+    # description) so that their own checks run now.
+    data = config["data"]
+    try:
+        placeholder = DataInfo(
+            chunk_horizon=data["chunk_horizon"], history=data["history"], image_size=data["image_size"]
+        )
+        if given is not None:
+            placeholder = DataInfo.from_metadata(given.metadata)
+        policy = make_policy(config, placeholder)
+        make_objective(config, policy)
+    except (ValueError, TypeError) as err:
+        raise ConfigError(str(err)) from None
+    _check_init(config, policy, placeholder)
+    return tasks
+
+
+def _check_objective(config: dict) -> None:
+    obj = config["objective"]
     _check_choice("objective.name", obj["name"], list(WEIGHTINGS))
     _check_choice("policy.name", config["policy"]["name"], list(POLICIES))
     _check_choice("objective.cap", obj["cap"], ["paper", "exact"])
@@ -73,6 +98,12 @@ def validate(config: dict) -> dict:
         if not 0 <= obj[key] <= 1:
             raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {obj[key]}")
     _check_objective_numbers(obj)
+
+
+def _check_suite_and_tasks(config: dict) -> tuple[Suite | None, DemoDataset | None, dict]:
+    """The suite evaluating the job (None: a given dataset no simulator here has), the given dataset
+    (``data.path``, opened and checked) and the resolved tasks."""
+    data, ev = config["data"], config["eval"]
     _check_choice("data.suite", data["suite"], SUITES.names())
     given = given_dataset(data["path"]) if data["path"] else None
     try:
@@ -96,6 +127,11 @@ def validate(config: dict) -> dict:
             raise ConfigError(str(err)) from None
     if data["image_size"] and suite is not None and not suite.images:
         raise ConfigError(f"data.image_size={data['image_size']}: the {suite_name} suite has no image observations")
+    return suite, given, {"train": train_tasks, "eval": eval_tasks, "suite": suite_name}
+
+
+def _check_numbers(config: dict, suite: Suite | None) -> None:
+    data, ev, opt, log = (config[k] for k in ("data", "eval", "optim", "logging"))
     for name, value, low in (
         ("seed", config["seed"], 0),
         ("data.seed", data["seed"], 0),
@@ -127,6 +163,10 @@ def validate(config: dict) -> dict:
             raise ConfigError(
                 f"logging.record_weights_at: {step!r} is not a step in 1..{opt['steps']} (or -1, the last)"
             )
+    _check_optim(opt)
+
+
+def _check_optim(opt: dict) -> None:
     if not (opt["lr"] > 0 and math.isfinite(opt["lr"])):
         raise ConfigError(f"optim.lr must be a positive number, got {opt['lr']}")
     _check_choice("optim.decay", opt["decay"], ["cosine", "constant"])
@@ -138,7 +178,9 @@ def validate(config: dict) -> dict:
         raise ConfigError(f"optim.ema is a decay in [0, 1) (0: off), got {opt['ema']}")
     if len(opt["betas"]) != 2 or not all(0 <= b < 1 for b in opt["betas"]):
         raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {opt['betas']}")
-    torch_device(config["device"])
+
+
+def _check_diagnostics(config: dict) -> None:
     diag = config["diagnostics"]
     for name in ("heldout_demos", "heldout_seed"):
         _check_int(f"diagnostics.{name}", diag[name], 0)
@@ -148,31 +190,22 @@ def validate(config: dict) -> dict:
         diagnose.check_heldout_seeds(config)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    # Demonstration and evaluation variations must never overlap (checked on the largest number
-    # of attempts collection may make, before collecting; on a given dataset, on the seeds it used).
-    if ev["rollouts"]:
-        try:
-            if given is not None:
-                suite.check_dataset(given, ev["seed"], ev["rollouts"])
-            else:
-                suite.check_seeds(config)
-        except ValueError as err:
-            where = f"data.path={data['path']}" if given is not None else f"data.seed={data['seed']}"
-            raise ConfigError(f"{where} and eval.seed={ev['seed']}: {err}") from None
-    # The objective and the head are built once on placeholder data (or the given dataset's
-    # description) so that their own checks run now.
+
+
+def _check_seeds(config: dict, suite: Suite | None, given: DemoDataset | None) -> None:
+    """Demonstration and evaluation variations never overlap: checked on the largest number of attempts
+    collection may make, before collecting; on a given dataset, on the seeds it used."""
+    data, ev = config["data"], config["eval"]
+    if not ev["rollouts"]:
+        return
     try:
-        placeholder = DataInfo(
-            chunk_horizon=data["chunk_horizon"], history=data["history"], image_size=data["image_size"]
-        )
         if given is not None:
-            placeholder = DataInfo.from_metadata(given.metadata)
-        policy = make_policy(config, placeholder)
-        make_objective(config, policy)
-    except (ValueError, TypeError) as err:
-        raise ConfigError(str(err)) from None
-    _check_init(config, policy, placeholder)
-    return {"train": train_tasks, "eval": eval_tasks, "suite": suite_name}
+            suite.check_dataset(given, ev["seed"], ev["rollouts"])
+        else:
+            suite.check_seeds(config)
+    except ValueError as err:
+        where = f"data.path={data['path']}" if given is not None else f"data.seed={data['seed']}"
+        raise ConfigError(f"{where} and eval.seed={ev['seed']}: {err}") from None
 
 
 def _check_init(config: dict, policy: Policy, info: DataInfo) -> None:
