@@ -25,7 +25,7 @@ and reacher's target position). Demonstrations use ``data_seed + attempt``; eval
 Experts (:class:`DMCExpert`, from the observation alone): point_mass a PD controller toward the
 origin, reacher a Jacobian-transpose PD controller of the fingertip toward the target
 (link lengths 0.12 and 0.12, from reacher.xml). Both succeed well within the suites' horizon
-(``tests/test_dmc.py`` runs them through the evaluator).
+(``tests/collectors/test_dmc.py`` runs them through the evaluator).
 
 Evaluation batches the rollouts of a call in TorchRL ``SerialEnv`` s (``batch`` at once) and
 rolls them out with ``EnvBase.rollout(break_when_all_done=True)``: finished sub-environments are

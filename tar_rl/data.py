@@ -679,7 +679,7 @@ class _OneGatherSliceSampler(SliceSampler):
     (``storage[index]``) to look for a stored ``is_init`` to mark slice starts in, and the buffer
     then gathers them again for the batch. With ``truncated_key=None`` and ``init_key=None``
     that first gather is read by nothing: this returns the same index and mask without it
-    (tests/test_data.py checks the batches equal those of the plain ``SliceSampler``).
+    (tests/data/test_data.py checks the batches equal those of the plain ``SliceSampler``).
     """
 
     def _finalize_index(self, *, index, num_slices, seq_length, target_seq_length, mask_flat, storage):

@@ -14,7 +14,9 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+from paths import REPO
+
+ROOT = REPO
 # folder -> (import package, layer)
 FOLDERS = {
     "objectives": ("tar_rl.objectives", 0),

@@ -7,9 +7,9 @@ import importlib
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from paths import REPO
 
 MODULES = ["tar_rl.objectives.weighting", "tar_rl.objectives.schedule", "tar_rl.objectives.tar_loss"]
 
@@ -60,7 +60,7 @@ def test_demo_runs_end_to_end(capsys):
 
 def test_readme_training_example_runs(tmp_path, monkeypatch):
     """The README's training loop, run for a few steps instead of 1,000."""
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    readme = (REPO / "README.md").read_text()
     block = readme.split("```python\n")[1].split("```")[0]
     assert "for step in range(1_000):" in block
     monkeypatch.chdir(tmp_path)
@@ -73,7 +73,7 @@ def test_readme_training_example_runs(tmp_path, monkeypatch):
 @pytest.mark.slow
 def test_readme_metaworld_example_runs(tmp_path, monkeypatch):
     """The README's MetaWorld block: a tiny dataset, a segment batch, an expert evaluation, the table."""
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    readme = (REPO / "README.md").read_text()
     block = next(b.split("```")[0] for b in readme.split("```python\n")[1:] if "build_dataset" in b)
     monkeypatch.chdir(tmp_path)
     scope: dict = {}

@@ -20,6 +20,7 @@ import torch
 from hydra import compose, initialize
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigAttributeError, ValidationError
+from paths import REPO
 from recipe_helpers import TASK, compose_config, tiny
 from tar_reference import ref_tar_segment
 from tensordict import TensorDict
@@ -572,7 +573,7 @@ def test_report_compares_the_smoke_runs(smoke_run, data_root, tmp_path, capsys):
 
 
 def test_slurm_launcher_example_composes(tmp_path):
-    examples = Path(__file__).parents[1] / "recipes" / "examples"
+    examples = REPO / "recipes" / "examples"
     out = subprocess.run(
         [
             sys.executable,

@@ -21,6 +21,7 @@ import pytest
 import torch
 import torch.distributed as torch_dist
 import torch.multiprocessing as mp
+from paths import REPO
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
@@ -287,7 +288,7 @@ def test_batch_must_split_evenly_over_ranks(job):
 def test_bench_scale_quick_writes_csv(tmp_path):
     import importlib.util
 
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.py"
+    path = REPO / "benchmarks" / "bench_scale.py"
     spec = importlib.util.spec_from_file_location("bench_scale", path)
     bench = importlib.util.module_from_spec(spec)
     sys.modules["bench_scale"] = bench  # spawned ranks import it by name (its folder goes on sys.path)

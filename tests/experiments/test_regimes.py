@@ -14,11 +14,12 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 import pytest
+from paths import REPO
 
 from tar_rl import diagnostics
 from tar_rl.report import holm, min_detectable_effect
 
-BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "regimes.py"
+BENCH = REPO / "benchmarks" / "regimes.py"
 COMMITTED = BENCH.parent / "results" / "regimes"
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+from paths import REPO
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
@@ -541,12 +542,11 @@ def test_workers_argument_is_checked():
 @pytest.mark.slow
 def test_bench_data_quick_writes_csv(tmp_path, monkeypatch):
     import importlib
-    from pathlib import Path
 
     import pandas as pd
 
     # importable by name: the benchmark's spawned pool workers import it to find their job
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
     bench = importlib.import_module("bench_data")
     out = tmp_path / "data.csv"
     bench.main(["--quick", "--workers", "2", "--out", str(out)])
@@ -560,11 +560,10 @@ def test_bench_data_quick_writes_csv(tmp_path, monkeypatch):
 @pytest.mark.slow  # collects a tiny dataset and starts two `tar-rl train` processes: ~20 s
 def test_bench_data_startup_quick_writes_csv(tmp_path, monkeypatch):
     import importlib
-    from pathlib import Path
 
     import pandas as pd
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
     bench = importlib.import_module("bench_data")
     out = tmp_path / "startup.csv"
     bench.main(["--quick", "--sections", "startup", "--root", str(tmp_path / "data"), "--out", str(out)])

@@ -6,6 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from paths import REPO
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors import evaluate as ev
@@ -287,11 +288,10 @@ def _bench_eval():
     """benchmarks/bench_eval.py as the module ``bench_eval`` (registered: its workers pickle its functions by name)."""
     import importlib.util
     import sys
-    from pathlib import Path
 
     if "bench_eval" in sys.modules:
         return sys.modules["bench_eval"]
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_eval.py"
+    path = REPO / "benchmarks" / "bench_eval.py"
     spec = importlib.util.spec_from_file_location("bench_eval", path)
     bench = importlib.util.module_from_spec(spec)
     sys.modules["bench_eval"] = bench

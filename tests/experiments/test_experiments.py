@@ -14,18 +14,18 @@ import importlib.util
 import json
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from test_report import ROLLOUTS, write_run
+from paths import REPO
+from run_helpers import ROLLOUTS, write_run
 
 from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
 from tar_rl.runs import config_differences
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))  # paper_analysis.py
+sys.path.insert(0, str(REPO / "benchmarks"))  # paper_analysis.py
 from paper_analysis import (
     controls_markdown,
     critical_windows,
@@ -40,7 +40,7 @@ from paper_analysis import (
 )
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "paper_experiments.py"
+BENCH = REPO / "benchmarks" / "paper_experiments.py"
 
 # Two-sided 95% quantiles t_{0.975, df} from a printed table of Student's t.
 T_TABLE = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776}
@@ -115,7 +115,7 @@ def test_paired_t_degenerate_cases():
 
 @pytest.fixture
 def sweep(tmp_path):
-    """tests/test_report.py's four runs (uniform/tar x seeds 0, 1) and a tar seed 2 without a uniform partner."""
+    """tests/report/test_report.py's four runs (uniform/tar x seeds 0, 1) and a tar seed 2 without a uniform partner."""
     root = tmp_path / "sweep"
     for (objective, seed), rollouts in ROLLOUTS.items():
         write_run(root, objective, seed, rollouts)

@@ -2,8 +2,8 @@
 
 Expected values are computed by hand here (the cosine schedule, the forward process, DDIM and DDPM
 steps, the flow interpolation, Euler steps), never read from the code under test; the generic
-head contract (shapes, save/load, gradients) is also checked by tests/test_recipes.py and
-tests/test_heads.py over every registered head.
+head contract (shapes, save/load, gradients) is also checked by tests/recipes/test_recipes.py and
+tests/policies/test_heads.py over every registered head.
 """
 
 from __future__ import annotations

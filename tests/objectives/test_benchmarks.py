@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import importlib.util
 import math
-from pathlib import Path
 
 import pandas as pd
 import pytest
+from paths import REPO
 
-BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_objective.py"
+BENCH = REPO / "benchmarks" / "bench_objective.py"
 
 
 def _load_bench(name: str = "bench_objective"):
