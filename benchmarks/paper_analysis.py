@@ -62,7 +62,7 @@ TABLE_I_COLUMNS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def _fmt_p(p: float) -> str:
+def fmt_p(p: float) -> str:
     if p is None or math.isnan(p):
         return "-"
     return "<0.001" if p < 0.001 else f"{p:.3f}"
@@ -112,7 +112,7 @@ def table_one_markdown(paired: pd.DataFrame, objective: str = "tar") -> str:
             if kind == "delta":
                 ci = "" if math.isnan(c["ci_low"]) else f" [{c['ci_low']:+.2f}, {c['ci_high']:+.2f}]"
                 return f"{c['delta_mean']:+.2f}{ci}"
-            return _fmt_p(c["p_value"])
+            return fmt_p(c["p_value"])
 
         for label, kind in (
             (base, "base"),
@@ -150,7 +150,7 @@ def controls_markdown(paired: pd.DataFrame, table: pd.DataFrame, policy: str) ->
             delta, p = "-", "-"
         else:
             ci = "" if math.isnan(c["ci_low"]) else f" [{c['ci_low']:+.2f}, {c['ci_high']:+.2f}]"
-            delta, p = f"{c['delta_mean']:+.2f}{ci} (n={c['n_pairs']})", _fmt_p(c["p_value"])
+            delta, p = f"{c['delta_mean']:+.2f}{ci} (n={c['n_pairs']})", fmt_p(c["p_value"])
         lines.append(f"| {rec['objective']} | {rec['n_seeds']} | " + " | ".join(cells) + f" | {delta} | {p} |")
     return "\n".join(lines)
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import gzip
 import hashlib
+import io
 import json
 import math
 import shutil
@@ -41,8 +42,10 @@ from pathlib import Path
 import pandas as pd
 
 from tar_rl import runs
+from tar_rl.report import run_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_experiments.py beside this script
+from paper_analysis import fmt_p as _fmt_p
 from paper_experiments import EIGHT_TASKS, Planner, Scale, Spec, execute, provenance
 
 COMMANDS = ("r1", "r2-screen", "r2", "r3", "table", "collect")
@@ -260,7 +263,7 @@ def write_screening(study: Study, spec: Spec, out: Path) -> list[str]:
     from tar_rl.report import load_run
 
     run = load_run(spec.run_dir)
-    rollouts = pd.read_csv(_csv(spec.run_dir, runs.ROLLOUTS_FILE))
+    rollouts = pd.read_csv(run_file(spec.run_dir, runs.ROLLOUTS_FILE))
     tasks = pick_hardest(rollouts[rollouts["step"] == rollouts["step"].max()], study.screen_keep)
     started = out / STARTED_FILE
     if started.is_file() and json.loads(started.read_text())["tasks"] != tasks:
@@ -299,11 +302,6 @@ def check_started(out: Path, tasks: Sequence[str]) -> None:
 
 
 # -- Collecting raw results --------------------------------------------------------------------------
-
-
-def _csv(run_dir: Path, name: str) -> Path:
-    path = run_dir / name
-    return path if path.is_file() else run_dir / f"{name}.gz"
 
 
 def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[str]:
@@ -372,7 +370,7 @@ def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
     """One decision-table row (success, Fast20, NEPS statistics and fit diagnostics) and the per-group rows."""
     from tar_rl.report import min_detectable_effect, paired_table
 
-    paired = paired_table(runs, objectives=[TREATMENT], file=_Quiet())
+    paired = paired_table(runs, objectives=[TREATMENT], file=io.StringIO())
     row: dict = {"regime": label}
     for metric in ("success", "fast20", "neps"):
         rec = paired[(paired["metric"] == metric) & (paired["level"] == "overall")].iloc[0]
@@ -395,19 +393,10 @@ def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
     return row, groups
 
 
-class _Quiet:
-    def write(self, _text: str) -> int:
-        return 0
-
-
 def _fmt(v: float, digits: int = 1, signed: bool = False) -> str:
     if v is None or not math.isfinite(v):
         return "-"
     return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
-
-
-def _fmt_p(p: float) -> str:
-    return "-" if p is None or not math.isfinite(p) else ("<0.001" if p < 0.001 else f"{p:.3f}")
 
 
 def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[str, list[str]]) -> str:
@@ -494,7 +483,7 @@ def write_tables(study: Study, planner: Planner, out: Path, prov: dict, dest: Pa
         row, group = regime_rows(label, runs)
         rows.append(row)
         groups.append(group)
-        table = compare(runs, file=_Quiet())
+        table = compare(runs, file=io.StringIO())
         figure.append(table[table["objective"].isin([BASELINE, TREATMENT])].assign(policy=label))
     primary = [i for i, r in enumerate(rows) if r["regime"] in PRIMARY]
     adjusted = holm([rows[i]["p_success"] for i in primary])

@@ -21,7 +21,7 @@ critical windows) are in ``benchmarks/paper_analysis.py``, built on these.
 from __future__ import annotations
 
 from tar_rl.report.cli import main
-from tar_rl.report.load import Run, expand_run_dirs, load_run
+from tar_rl.report.load import Run, expand_run_dirs, load_run, run_file
 from tar_rl.report.phases import PHASES, first_gripper_close, phase_labels
 from tar_rl.report.plots import plot_group_bars, plot_success_vs_neps, plot_weights
 from tar_rl.report.stats import (
@@ -56,6 +56,7 @@ __all__ = [
     "plot_group_bars",
     "plot_success_vs_neps",
     "plot_weights",
+    "run_file",
     "run_percent",
     "runs_table",
 ]

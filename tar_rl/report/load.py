@@ -31,7 +31,7 @@ from tar_rl.runs import (
     WEIGHTS_FILE,
 )
 
-__all__ = ["Run", "expand_run_dirs", "load_run"]
+__all__ = ["Run", "expand_run_dirs", "load_run", "run_file"]
 
 
 @dataclass
@@ -105,7 +105,7 @@ def _read_summary(path: Path) -> dict:
     return data
 
 
-def _run_file(run_dir: Path, name: str) -> Path:
+def run_file(run_dir: Path, name: str) -> Path:
     """``run_dir / name``, or its gzip-compressed copy ``name.gz`` when only that exists (committed results)."""
     path = run_dir / name
     packed = run_dir / f"{name}.gz"
@@ -186,7 +186,7 @@ def _identity(path: Path, config: dict, info: dict) -> tuple[str, str, int]:
 
 def _read_metrics(path: Path, finished: bool) -> pd.DataFrame:
     """``metrics.csv``; an empty table for an unfinished run that has not written it yet."""
-    metrics_path = _run_file(path, METRICS_FILE)
+    metrics_path = run_file(path, METRICS_FILE)
     if metrics_path.is_file():
         return _read_csv(metrics_path, METRICS_COLUMNS)
     if finished:
@@ -196,7 +196,7 @@ def _read_metrics(path: Path, finished: bool) -> pd.DataFrame:
 
 def _read_final(path: Path, config: dict) -> tuple[pd.DataFrame | None, int | None, dict]:
     """The final evaluation: its ``summarize`` table, its step and its settings (``None, None, {}`` without rows)."""
-    rollouts_path = _run_file(path, ROLLOUTS_FILE)
+    rollouts_path = run_file(path, ROLLOUTS_FILE)
     if not rollouts_path.is_file():
         return None, None, {}
     rollouts = _read_csv(rollouts_path, ROLLOUTS_COLUMNS)
@@ -258,7 +258,7 @@ def load_run(path: str | os.PathLike) -> Run:
     if finished and summary.get("final"):
         _check_summary_agrees(summary["final"], final, notes)
 
-    weights_path = _run_file(path, WEIGHTS_FILE)
+    weights_path = run_file(path, WEIGHTS_FILE)
     weights = _read_csv(weights_path, WEIGHTS_COLUMNS) if weights_path.is_file() else None
     if weights is not None and len(weights) == 0:
         weights = None
