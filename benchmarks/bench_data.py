@@ -230,7 +230,7 @@ def bench_segments(names, n_demos, seed, workers, reps, root) -> list[dict]:
     from torchrl.objectives import BCLoss
 
     from tar_rl import TARLoss
-    from tar_rl.data import build_dataset
+    from tar_rl.collectors.metaworld_data import build_dataset
 
     ds = build_dataset(root, names, n_demos, seed=seed, workers=workers, progress=False, verbose=False)
     torch.manual_seed(0)
@@ -328,7 +328,8 @@ def _job_startup(overrides: list[str], cwd: str) -> float:
 
 
 def bench_startup(quick: bool, workers: int, reps: int, check_reps: int, root: str) -> list[dict]:
-    from tar_rl.data import build_dataset, check_content, load_dataset
+    from tar_rl.collectors.metaworld_data import build_dataset
+    from tar_rl.data import check_content, load_dataset
     from tar_rl.recipes.config import DataConfig
 
     data = DataConfig()

@@ -169,7 +169,7 @@ def trained_policy(names, demos: int, train_steps: int, cache: Path, seed: int =
     """
     import torch
 
-    from tar_rl.data import build_dataset
+    from tar_rl.collectors.metaworld_data import build_dataset
     from tar_rl.policies import DataInfo, build_policy
 
     ds = build_dataset(cache, list(names), demos, seed=seed, workers=1, progress=False, verbose=False)

@@ -381,8 +381,8 @@ def build_dataset(
     """The experts' demonstrations of ``tasks`` as a tar-rl dataset folder under ``root`` (collected once).
 
     The folder is ``root/dm_control-<tasks>-<key>``, ``key`` a hash of the settings: the same
-    settings load it again. Task ids are the ``DMC_TASKS`` indices (``n_task_ids`` = 2 in the
-    metadata); ``variation_seeds`` lists every seed the experts tried, for :func:`check_disjoint`.
+    settings load it again. Task ids are the ``DMC_TASKS`` indices (``task_names`` in the metadata
+    lists both); ``variation_seeds`` lists every seed the experts tried, for :func:`check_disjoint`.
     Written through ``tar_rl.importers.common.import_folder`` (the same format, atomically).
     """
     from tar_rl import data as _data
@@ -407,8 +407,7 @@ def build_dataset(
         episodes, per_task = expert_episodes(names, n_demos, int(seed), attempts)
         tried = sorted({s for p in per_task.values() for s in range(p["seeds_tried"][0], p["seeds_tried"][1] + 1)})
         return episodes, {
-            "task_ids": {t: DMC_TASKS.index(t) for t in names},
-            "n_task_ids": len(DMC_TASKS),
+            "task_names": list(DMC_TASKS),
             "instructions": {t: INSTRUCTIONS[t] for t in names},
             "per_task": per_task,
             "variation_seeds": tried,
@@ -429,6 +428,8 @@ class DMControlSuite(Suite):
     name = "dm_control"
     max_horizon = MAX_HORIZON
     sources = ("dm_control",)
+    task_names = DMC_TASKS
+    instructions = INSTRUCTIONS
 
     def resolve(self, spec: Sequence[str]) -> list[str]:
         return resolve_tasks(spec)

@@ -6,10 +6,11 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
-from tar_rl.data import DemoDataset, build_dataset
+from tar_rl.data import DemoDataset
 
 from . import tasks as mw_tasks
 from .evaluate import MAX_HORIZON, evaluate
+from .metaworld_data import build_dataset, check_disjoint
 from .suite import Suite
 
 __all__ = ["MetaWorldSuite"]
@@ -22,6 +23,8 @@ class MetaWorldSuite(Suite):
     max_horizon = MAX_HORIZON
     images = True
     sources = ("metaworld",)
+    task_names = mw_tasks.TASKS
+    instructions = mw_tasks.INSTRUCTIONS
 
     def resolve(self, spec: Sequence[str]) -> list[str]:
         return mw_tasks.resolve_tasks(list(spec))
@@ -39,7 +42,7 @@ class MetaWorldSuite(Suite):
         )
 
     def check_dataset(self, dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
-        dataset.check_disjoint(eval_seed, rollouts)
+        check_disjoint(dataset, eval_seed, rollouts)
 
     def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         data = config["data"]

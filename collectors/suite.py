@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 
 from tar_rl.data import DemoDataset
 
@@ -19,6 +20,9 @@ class Suite:
         collects: whether it collects its own demonstrations (False: it evaluates imported ones only).
         sources: the dataset sources (``metadata.json``'s ``source``) it evaluates.
         no_collection: why it collects nothing and what to do instead (for a suite that does not collect).
+        task_names: the fixed task list whose indices are the task ids of the datasets it collects (a dataset's
+            ``task_names``); empty for a suite that collects nothing (an imported dataset numbers its own tasks).
+        instructions: the instruction text of each task of ``task_names``.
     """
 
     name: str = ""
@@ -27,6 +31,8 @@ class Suite:
     collects: bool = True
     sources: tuple[str, ...] = ()
     no_collection: str = "it collects no demonstrations"
+    task_names: tuple[str, ...] = ()
+    instructions: Mapping[str, str] = MappingProxyType({})
 
     def resolve(self, spec: Sequence[str]) -> list[str]:
         """Task and group names -> task names (``ValueError`` naming the valid ones)."""

@@ -74,11 +74,16 @@ def validate(config: dict) -> dict:
     # description) so that their own checks run now.
     data = config["data"]
     try:
-        placeholder = DataInfo(
-            chunk_horizon=data["chunk_horizon"], history=data["history"], image_size=data["image_size"]
-        )
         if given is not None:
             placeholder = DataInfo.from_metadata(given.metadata)
+        else:
+            placeholder = DataInfo(
+                n_tasks=len(suite.task_names),
+                instructions=tuple(suite.instructions.get(t) or "" for t in suite.task_names),
+                chunk_horizon=data["chunk_horizon"],
+                history=data["history"],
+                image_size=data["image_size"],
+            )
         policy = make_policy(config, placeholder)
         make_objective(config, policy)
     except (ValueError, TypeError) as err:

@@ -59,7 +59,7 @@ __all__ = [
 CONFIG_FILE = "config.yaml"
 #: Model, optimiser and log state for resuming (:func:`save_checkpoint`).
 CHECKPOINT = "checkpoint.pt"
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2  # 2: data_info carries the instruction text of every task id
 #: Training and evaluation scalars, columns :data:`METRICS_COLUMNS`.
 METRICS_FILE = "metrics.csv"
 METRICS_COLUMNS: tuple[str, ...] = ("step", "phase", "name", "value")

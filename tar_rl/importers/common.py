@@ -127,8 +127,8 @@ def import_folder(
     the checked episodes (module docstring) and the metadata entries particular to the source
     (``source``, ``settings``, ``tasks``, ``instructions``, the per-task counts, ...: see
     :func:`_metadata`); it runs before anything is written, so bad input leaves nothing behind.
-    Tasks get ids in order of first appearance, unless the entries give ``task_ids`` (a name -> id
-    map of a fixed task list, then also ``n_task_ids``).
+    Tasks get ids in order of first appearance, unless the entries give ``task_names`` (a fixed task
+    list: the id of a task is its index there).
     A folder left incomplete or stale by an earlier import is removed and written again.
     """
     key = _data.cache_key(settings)
@@ -151,9 +151,10 @@ def import_folder(
     start = time.perf_counter()
     episodes, extra = read()
     tasks = list(dict.fromkeys(ep["task"] for ep in episodes))
-    ids = extra.pop("task_ids", None) or {t: i for i, t in enumerate(tasks)}
+    names = extra.pop("task_names", None) or tasks
+    ids = {t: names.index(t) for t in tasks}
     data = _steps(episodes, ids, settings["chunk_horizon"], settings["history"])
-    metadata = _metadata(settings, key, tasks, ids, episodes, data, extra, time.perf_counter() - start)
+    metadata = _metadata(settings, key, names, ids, episodes, data, extra, time.perf_counter() - start)
     path = _data.write_dataset(root, name, data, metadata)
     dataset = _data.load_dataset(path)
     if verbose:
@@ -176,9 +177,10 @@ def _steps(episodes: Sequence[dict], ids: dict[str, int], chunk_horizon: int, hi
 _STEP_KEYS = ("observation", "next_observation", "action", "action_raw", "reward", "terminated")
 
 
-def _metadata(settings, key, tasks, ids, episodes, data, extra, secs) -> dict:
+def _metadata(settings, key, names, ids, episodes, data, extra, secs) -> dict:
     import tar_rl
 
+    tasks = list(ids)
     per_task = {}
     for task in tasks:
         lengths = [len(ep["action"]) for ep in episodes if ep["task"] == task]
@@ -197,6 +199,7 @@ def _metadata(settings, key, tasks, ids, episodes, data, extra, secs) -> dict:
         "settings": settings,
         "tasks": tasks,
         "task_ids": {task: p["task_id"] for task, p in per_task.items()},
+        "task_names": list(names),
         "instructions": {task: p["instruction"] for task, p in per_task.items()},
         "per_task": per_task,
         "total_steps": int(data.shape[0]),

@@ -2,9 +2,9 @@
 
 A head gives the recipe two things (:class:`Policy`):
 
-* ``actor``: a ``TensorDictModule`` for inference, reading ``observation`` (``[..., 39]``) and
-  ``task_id`` (int64, the index in ``tar_rl.collectors.tasks.TASKS``) and writing ``action``
-  (``[..., 4]``). The evaluator collectors call it on ``[N]`` batches; it must be picklable.
+* ``actor``: a ``TensorDictModule`` for inference, reading ``observation`` (``[..., D]``) and
+  ``task_id`` (int64, the index in the dataset's ``task_names``) and writing ``action``
+  (``[..., A]``). The evaluator collectors call it on ``[N]`` batches; it must be picklable.
 * ``loss``: a TorchRL ``LossModule`` built with ``reduction="none"`` whose one ``loss_*`` output is
   the per-step loss ``[B, L]`` or ``[B, L, ...]`` on a ``[B, L]`` segment batch. Heads never
   average over the segment axis: ``tar_rl.TARLoss`` owns that reduction. A loss names its
@@ -20,9 +20,9 @@ conditioning, the image encoder), :mod:`.chunking` (what every chunked head shar
 
 Every head is registered in :data:`POLICIES` with its config dataclass (the fields a recipe may
 set, with defaults) and its builder ``build(config, info) -> Policy``. ``info``
-(:class:`DataInfo`) carries what a head needs from the dataset: dimensions and normalisation
-statistics. The statistics are stored as buffers of the network, so a checkpoint's state dict
-restores them.
+(:class:`DataInfo`) carries what a head needs from the dataset: dimensions, normalisation
+statistics, the number of task ids and their instructions. The statistics are stored as buffers
+of the network, so a checkpoint's state dict restores them.
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import LossModule
 
-from tar_rl.collectors.tasks import TASKS
 from tar_rl.registry import Registry
 
 __all__ = [
@@ -60,25 +59,25 @@ __all__ = [
 
 @dataclass(frozen=True)
 class DataInfo:
-    """What a head needs to know about the data.
+    """What a head needs to know about the data. The defaults are MetaWorld's sizes (39, 4, 50 task ids), for
+    heads built without a dataset (tests, benchmarks).
 
     Attributes:
-        obs_dim: observation size (39 for MetaWorld).
-        action_dim: action size (4).
-        n_tasks: number of task ids (``len(TASKS)``: ids are global, so a policy trained on a few
-            tasks is evaluated with the same ids).
+        obs_dim: observation size.
+        action_dim: action size.
+        n_tasks: number of task ids (the dataset's ``task_names``: a suite with a fixed task list numbers
+            all of it, so a policy trained on a few tasks is evaluated with the same ids).
         obs_mean, obs_std: per-dimension observation statistics of the training data.
         chunk_horizon: the dataset's ``action_chunk`` horizon ``H``.
         history: the dataset's ``observation_history`` window ``K``.
         image_size: the side ``S`` of the dataset's ``pixels`` (0: a state-only dataset).
-        instructions: the instruction text of each task id, for datasets whose task ids are
-            their own (imported ones: ``""`` where the dataset has none); ``None``: MetaWorld's
-            ids and instructions (``tar_rl.collectors.tasks``).
+        instructions: the instruction text of each task id (``""`` where the dataset has none); ``None``:
+            no texts at all (``task_conditioning=instruction`` is then refused).
     """
 
     obs_dim: int = 39
     action_dim: int = 4
-    n_tasks: int = len(TASKS)
+    n_tasks: int = 50
     obs_mean: tuple[float, ...] | None = None
     obs_std: tuple[float, ...] | None = None
     chunk_horizon: int = 1
@@ -88,29 +87,20 @@ class DataInfo:
 
     @classmethod
     def from_metadata(cls, metadata: dict) -> DataInfo:
-        """Read the dimensions, observation statistics and task ids from a dataset's ``metadata.json``.
-
-        A MetaWorld dataset uses MetaWorld's 50 global task ids; an imported one (``source`` in its
-        metadata) numbers its own tasks 0..n-1 and brings their instructions if it has any.
-        """
+        """Read the dimensions, observation statistics, task ids and instructions from a dataset's metadata."""
         stats = metadata["stats"]["observation"]
-        own = {}
-        if metadata.get("source", "metaworld") != "metaworld":
-            # ids 0..n-1 of the dataset's tasks, or of a fixed task list (n_task_ids, e.g. dm_control's)
-            ids = metadata["task_ids"]
-            n = int(metadata.get("n_task_ids", len(ids)))
-            texts = metadata.get("instructions") or {}
-            by_id = {i: t for t, i in ids.items()}
-            own = {"n_tasks": n, "instructions": tuple(texts.get(by_id.get(i, "")) or "" for i in range(n))}
+        names = metadata["task_names"]
+        texts = metadata.get("instructions") or {}
         return cls(
-            **own,
             obs_dim=len(stats["mean"]),
             action_dim=len(metadata["stats"]["action"]["mean"]),
+            n_tasks=len(names),
             obs_mean=tuple(stats["mean"]),
             obs_std=tuple(stats["std"]),
             chunk_horizon=int(metadata["chunk_horizon"]),
             history=int(metadata.get("history", 1)),
             image_size=int(metadata.get("image_size", 0)),
+            instructions=tuple(texts.get(name) or "" for name in names),
         )
 
     def to_dict(self) -> dict:

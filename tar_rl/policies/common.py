@@ -4,12 +4,12 @@
 statistics held as buffers, so a checkpoint's state dict restores them.
 
 **Task conditioning** (:class:`TaskEncoder`): ``TaskEncoder(kind, n_tasks, dim, instructions=None)``
-maps ``task_id`` (``[...]`` int64, the index in ``tar_rl.collectors.tasks.TASKS``, or an imported
-dataset's own ids with their ``instructions``) to ``[..., dim]``:
+maps ``task_id`` (``[...]`` int64, the index in the dataset's ``task_names``, whose instruction texts
+are ``instructions``) to ``[..., dim]``:
 
 * ``embedding``: one learned vector per task id (the default of every head);
-* ``instruction``: the task's instruction sentence (``tasks.INSTRUCTIONS``, one per task, or the
-  dataset's) as a bag of words: lower-cased words (runs of letters and digits), a learned vector
+* ``instruction``: the task's instruction sentence (one per task id, from the dataset's metadata) as
+  a bag of words: lower-cased words (runs of letters and digits), a learned vector
   per word of the instructions' vocabulary, mean-pooled, then a linear layer. Tasks that share words share
   parameters, so related tasks ("Push the puck ...", "Push the puck to the goal ...") start close.
   No pretrained language model is used: nothing can be downloaded at run time here, and the paper's language encoders
@@ -33,8 +33,6 @@ from collections.abc import Sequence
 
 import torch
 from torch import nn
-
-from tar_rl.collectors.tasks import INSTRUCTIONS, TASKS
 
 __all__ = [
     "OBSERVATIONS",
@@ -81,11 +79,12 @@ def instruction_tokens(
     """Word ids ``[n_tasks, W]`` of each task's instruction (padded with 0), their ``[n_tasks, W]`` mask,
     and the vocabulary size (id 0 is padding).
 
-    ``instructions``: the text of each task id (a dataset with its own task ids); ``None``:
-    MetaWorld's (``tasks.INSTRUCTIONS`` in ``TASKS`` order). Every task needs a text.
+    ``instructions``: the text of each task id; every task id needs one.
     """
     if instructions is None:
-        instructions = [INSTRUCTIONS[TASKS[i]] if i < len(TASKS) else "" for i in range(n_tasks)]
+        raise ValueError(
+            "policy.task_conditioning=instruction needs the instruction text of every task id; the data has none"
+        )
     if len(instructions) != n_tasks:
         raise ValueError(f"{len(instructions)} instructions for {n_tasks} task ids")
     missing = [i for i, t in enumerate(instructions) if not t or not t.strip()]

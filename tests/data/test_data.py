@@ -21,7 +21,9 @@ from torchrl.objectives import BCLoss
 
 from tar_rl import TARLoss
 from tar_rl.collectors import demos, tasks
-from tar_rl.data import DatasetError, build_dataset, load_dataset
+from tar_rl.collectors.metaworld_data import build_dataset, check_disjoint
+from tar_rl.data import DatasetError, load_dataset
+from tar_rl.policies import DataInfo
 
 TASKS = ["reach-v3", "button-press-topdown-v3"]
 N_DEMOS = 3
@@ -169,7 +171,12 @@ def test_metadata(built, arrays):
     m = json.loads((ds.path / "metadata.json").read_text())
     assert m == ds.metadata
     assert m["tasks"] == sorted(TASKS, key=sorted(ALL_V3_ENVIRONMENTS).index)
-    assert m["instructions"] == {t: tasks.INSTRUCTIONS[t] for t in TASKS}
+    # every task id is named, with its instruction: ids are global, so the policy reads all 50 from the data
+    assert m["source"] == "metaworld" and m["task_names"] == sorted(ALL_V3_ENVIRONMENTS)
+    assert m["instructions"] == {t: tasks.INSTRUCTIONS[t] for t in sorted(ALL_V3_ENVIRONMENTS)}
+    assert all(m["per_task"][t]["instruction"] == tasks.INSTRUCTIONS[t] for t in TASKS)
+    info = DataInfo.from_metadata(m)
+    assert info.n_tasks == 50 and info.instructions == tuple(tasks.INSTRUCTIONS[t] for t in sorted(ALL_V3_ENVIRONMENTS))
     assert m["seed"] == SEED and m["chunk_horizon"] == H and m["n_demos"] == N_DEMOS
     assert m["max_attempts"] == 3 * N_DEMOS + 5
     assert m["variation_seeds"] == [SEED]
@@ -477,11 +484,11 @@ def test_segments_bad_arguments(built):
 def test_check_disjoint(built):
     _, ds = built
     with pytest.raises(ValueError, match="also used for demonstrations"):
-        ds.check_disjoint(SEED, 10)
+        check_disjoint(ds, SEED, 10)
     with pytest.raises(ValueError, match="also used for demonstrations"):
-        ds.check_disjoint(SEED, 60)  # 60 rollouts use seeds {SEED, SEED + 1}
-    ds.check_disjoint(SEED + 1, 50)  # seeds {SEED + 1}: disjoint
-    ds.check_disjoint(1000, 200)
+        check_disjoint(ds, SEED, 60)  # 60 rollouts use seeds {SEED, SEED + 1}
+    check_disjoint(ds, SEED + 1, 50)  # seeds {SEED + 1}: disjoint
+    check_disjoint(ds, 1000, 200)
 
 
 def test_unknown_task_lists_names(tmp_path, monkeypatch):

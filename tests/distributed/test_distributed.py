@@ -28,7 +28,7 @@ from torchrl.objectives import BCLoss
 
 from tar_rl import TARLoss
 from tar_rl.collectors.evaluate import ExpertPolicy, evaluate
-from tar_rl.data import build_dataset
+from tar_rl.collectors.metaworld_data import build_dataset
 from tar_rl.runs import load_checkpoint
 
 B, L = 8, 6

@@ -300,7 +300,7 @@ def test_cli_errors(h5file, tmp_path):
 
 
 def test_info_on_a_metaworld_dataset(data_root):
-    from tar_rl.data import build_dataset
+    from tar_rl.collectors.metaworld_data import build_dataset
 
     ds = build_dataset(data_root, ["reach-v3"], 1, chunk_horizon=2, history=2, workers=0, progress=False, verbose=False)
     info = dataset_info(ds.path)
@@ -312,12 +312,12 @@ def test_info_on_a_metaworld_dataset(data_root):
 
 
 def test_failure_while_writing_leaves_no_dataset(h5file, tmp_path, monkeypatch):
-    import tar_rl.data
+    import tar_rl.data.format
 
     def fail(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(tar_rl.data, "write_json_atomic", fail)  # the metadata, written last
+    monkeypatch.setattr(tar_rl.data.format, "write_json_atomic", fail)  # the metadata, written last
     path, _ = h5file
     out = tmp_path / "out"
     with pytest.raises(OSError, match="disk full"):

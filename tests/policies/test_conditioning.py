@@ -8,9 +8,11 @@ import torch
 from tar_rl.collectors.tasks import INSTRUCTIONS, TASKS
 from tar_rl.policies.common import TaskEncoder, instruction_tokens
 
+TEXTS = tuple(INSTRUCTIONS[t] for t in TASKS)  # the instruction of every MetaWorld task id
+
 
 def test_instruction_tokens_spell_each_sentence():
-    ids, mask, vocab = instruction_tokens(len(TASKS))
+    ids, mask, vocab = instruction_tokens(len(TASKS), TEXTS)
     words = sorted({w.strip(".,").lower() for s in INSTRUCTIONS.values() for w in s.split()} - {""})
     assert vocab == len(words) + 1
     i = TASKS.index("reach-v3")
@@ -21,8 +23,8 @@ def test_instruction_tokens_spell_each_sentence():
 
 def test_instruction_encoder_is_the_mean_of_word_vectors_projected():
     torch.manual_seed(0)
-    enc = TaskEncoder("instruction", len(TASKS), 8)
-    ids, mask, _ = instruction_tokens(len(TASKS))
+    enc = TaskEncoder("instruction", len(TASKS), 8, TEXTS)
+    ids, mask, _ = instruction_tokens(len(TASKS), TEXTS)
     i = TASKS.index("push-v3")
     mean = enc.words.weight[ids[i][mask[i]]].mean(0)
     expected = enc.project(mean)
@@ -44,7 +46,8 @@ def test_mlp_head_takes_the_instruction_conditioning():
     from tar_rl.policies import DataInfo, build_policy
 
     torch.manual_seed(0)
-    policy = build_policy({"name": "mlp", "task_conditioning": "instruction", "hidden": [16]}, DataInfo())
+    config = {"name": "mlp", "task_conditioning": "instruction", "hidden": [16]}
+    policy = build_policy(config, DataInfo(instructions=TEXTS))
     net = policy.actor.module
     assert isinstance(net.task_embedding, TaskEncoder) and net.task_embedding.kind == "instruction"
     obs = torch.zeros(2, 39)
@@ -52,3 +55,10 @@ def test_mlp_head_takes_the_instruction_conditioning():
     assert a.shape == (2, 4) and not torch.equal(a[0], a[1])  # same observation, different instructions
     a.sum().backward()
     assert net.task_embedding.words.weight.grad.abs().sum() > 0
+
+
+def test_instruction_conditioning_without_texts_is_refused():
+    with pytest.raises(ValueError, match="needs the instruction text of every task id"):
+        TaskEncoder("instruction", 3, 4)
+    with pytest.raises(ValueError, match=r"task ids \[1\] have no instruction text"):
+        TaskEncoder("instruction", 2, 4, ("pick the cup", ""))

@@ -22,7 +22,7 @@ from tar_rl.policies import POLICIES, ACTConfig, DataInfo, build_policy
 from tar_rl.recipes import policy_from_checkpoint, train
 from tar_rl.runs import load_checkpoint
 
-INFO = DataInfo(obs_dim=3, action_dim=2, n_tasks=2, chunk_horizon=3)
+INFO = DataInfo(obs_dim=3, action_dim=2, n_tasks=2, chunk_horizon=3, instructions=("Reach the goal.", "Push the puck."))
 TINY = {"name": "act", "dim": 8, "heads": 2, "ffn_dim": 16, "latent_dim": 2, "dropout": 0.0}
 
 

@@ -19,6 +19,7 @@ import torch
 from tensordict import TensorDict
 
 from tar_rl import TARLoss
+from tar_rl.collectors.tasks import INSTRUCTIONS, TASKS
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.diffusion import (
     OctoDiffusion,
@@ -33,7 +34,7 @@ from tar_rl.policies.octo import OctoBackbone, OctoConfig, OctoLinear, OctoLinea
 HEADS = ("octo_linear", "octo_diffusion", "flow")
 H, K, A, D = 4, 3, 4, 39
 SMALL = dict(dim=16, heads=2, layers=1, readouts=2)  # a tiny backbone for fast tests
-INFO = DataInfo(chunk_horizon=H, history=K)
+INFO = DataInfo(chunk_horizon=H, history=K, instructions=tuple(INSTRUCTIONS[t] for t in TASKS))
 
 
 def small(name: str, **extra):

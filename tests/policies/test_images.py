@@ -22,7 +22,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors.evaluate import evaluate
-from tar_rl.data import build_dataset
+from tar_rl.collectors.metaworld_data import build_dataset
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.common import ConvEncoder
 from tar_rl.recipes import make_objective, policy_from_checkpoint, train
