@@ -247,6 +247,7 @@ class Planner:
 
     def spec(self, *overrides: str) -> Spec:
         from tar_rl.recipes import ConfigError, run_name, validate
+        from tar_rl.recipes.config import config_dict
 
         items = (
             *self.scale.common,
@@ -257,12 +258,12 @@ class Planner:
         )
         try:
             config = _compose(items)
-            validate(config)
+            job = validate(config)
         except ConfigError as err:
             raise SystemExit(f"paper_experiments: {err}") from None
         except Exception as err:  # Hydra's composition errors name the bad override
             raise SystemExit(f"paper_experiments: bad settings {list(items)}: {err}") from None
-        return Spec(items, config, Path(config["runs_root"]) / run_name(config))
+        return Spec(items, config, Path(job.config.runs_root) / run_name(config_dict(job.config)))
 
     def protocol(self) -> list[Spec]:
         return [
@@ -351,7 +352,8 @@ def _collect_datasets(specs: Sequence[Spec]) -> None:
         key = json.dumps([d[k] for k in ("root", "tasks", "n_demos", "seed", "chunk_horizon", "history")])
         if key not in seen:
             seen.add(key)
-            make_dataset(spec.config, validate(spec.config)["train"], progress=False)
+            job = validate(spec.config)
+            make_dataset(job.config.data, job.train_tasks, progress=False)
 
 
 def execute(scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_dir: Path) -> list[Spec]:

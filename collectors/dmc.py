@@ -440,21 +440,16 @@ class DMControlSuite(Suite):
     def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
         return set(range(seed, seed + rollouts))
 
-    def check_seeds(self, config: dict) -> None:
-        data, ev = config["data"], config["eval"]
-        check_disjoint(data["seed"], max_attempts(data["n_demos"]), ev["seed"], ev["rollouts"])
+    def check_seeds(self, data, ev) -> None:
+        check_disjoint(data.seed, max_attempts(data.n_demos), ev.seed, ev.rollouts)
 
     def check_dataset(self, dataset, eval_seed: int, rollouts: int) -> None:
         clash = sorted(set(dataset.metadata["variation_seeds"]) & self.eval_seeds(eval_seed, rollouts))
         if clash:
             raise ValueError(f"the dataset's demonstrations used evaluation seeds {clash[:5]}")
 
-    def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
-        data = config["data"]
-        return build_dataset(
-            data["root"], tasks, n_demos, seed, data["chunk_horizon"], data["history"], verbose=progress
-        )
+    def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
+        return build_dataset(data.root, tasks, n_demos, seed, data.chunk_horizon, data.history, verbose=progress)
 
-    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
-        ev = config["eval"]
-        return evaluate(actor, tasks, ev["rollouts"], seed=ev["seed"], horizon=ev["horizon"], shard=shard)
+    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+        return evaluate(actor, tasks, ev.rollouts, seed=ev.seed, horizon=ev.horizon, shard=shard)

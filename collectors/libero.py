@@ -523,7 +523,7 @@ class LiberoSuite(Suite):
     def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
         return set()  # LIBERO's fixed initial states, no seeds
 
-    def check_seeds(self, config: dict) -> None:
+    def check_seeds(self, data, ev) -> None:
         raise ValueError(NO_COLLECTION)
 
     def check_dataset(self, dataset, eval_seed: int, rollouts: int) -> None:
@@ -538,24 +538,24 @@ class LiberoSuite(Suite):
         except ImportError as err:
             raise ValueError(str(err)) from None
 
-    def check_config(self, config: dict, given, train: Sequence[str], evaluate: Sequence[str]) -> None:
+    def check_config(self, data, given, train: Sequence[str], evaluate: Sequence[str]) -> None:
         outside = sorted(set(evaluate) - set(train))
         if outside:
             raise ValueError(
-                f"eval.tasks: {outside} are not tasks of data.path={config['data']['path']} (its tasks: "
+                f"eval.tasks: {outside} are not tasks of data.path={data.path} (its tasks: "
                 f"{list(train)}); the policy has no task id for them"
             )
 
-    def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
+    def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         raise ValueError(NO_COLLECTION)
 
-    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
-        metadata = load_dataset(config["data"]["path"]).metadata
+    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+        metadata = load_dataset(data.path).metadata
         return evaluate(
             actor,
             tasks,
-            config["eval"]["rollouts"],
-            seed=config["eval"]["seed"],
+            ev.rollouts,
+            seed=ev.seed,
             horizon=None,  # each suite's H: the paper's suite-wise normalisation
             shard=shard,
             task_ids=metadata["task_ids"],

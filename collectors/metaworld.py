@@ -35,42 +35,39 @@ class MetaWorldSuite(Suite):
     def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
         return set(mw_tasks.variation_seeds(seed, rollouts))
 
-    def check_seeds(self, config: dict) -> None:
-        data, ev = config["data"], config["eval"]
+    def check_seeds(self, data, ev) -> None:
         mw_tasks.check_disjoint(
-            sorted(self.demo_seeds(data["seed"], data["n_demos"])), sorted(self.eval_seeds(ev["seed"], ev["rollouts"]))
+            sorted(self.demo_seeds(data.seed, data.n_demos)), sorted(self.eval_seeds(ev.seed, ev.rollouts))
         )
 
     def check_dataset(self, dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
         check_disjoint(dataset, eval_seed, rollouts)
 
-    def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
-        data = config["data"]
+    def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         return build_dataset(
-            data["root"],
+            data.root,
             list(tasks),
             n_demos=n_demos,
             seed=seed,
-            chunk_horizon=data["chunk_horizon"],
-            history=data["history"],
-            image_size=data["image_size"],
-            workers=data["workers"],
+            chunk_horizon=data.chunk_horizon,
+            history=data.history,
+            image_size=data.image_size,
+            workers=data.workers,
             progress=progress,
         )
 
-    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
-        ev = config["eval"]
-        workers = ev["workers"]
+    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+        workers = ev.workers
         if workers is None and shard[1] > 1:
             workers = max(1, (os.cpu_count() or 1) // shard[1])
         return evaluate(
             actor,
             list(tasks),
-            rollouts_per_task=ev["rollouts"],
-            seed=ev["seed"],
-            horizon=ev["horizon"],
+            rollouts_per_task=ev.rollouts,
+            seed=ev.seed,
+            horizon=ev.horizon,
             workers=workers,
             progress=progress,
             shard=shard,
-            image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
+            image_size=data.image_size if "pixels" in actor.in_keys else 0,
         )

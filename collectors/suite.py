@@ -13,6 +13,9 @@ __all__ = ["Suite"]
 class Suite:
     """What the recipe needs of a simulator suite.
 
+    Methods take the sections of the job's typed config they read: ``data`` (the recipe's ``DataConfig``:
+    ``data.root``, ``data.path``, ...) and ``ev`` (its ``EvalConfig``: ``eval.rollouts``, ``eval.seed``, ...).
+
     Attributes:
         name: its ``data.suite`` name.
         max_horizon: the largest ``eval.horizon``.
@@ -46,8 +49,9 @@ class Suite:
         """The seeds ``rollouts`` evaluation rollouts per task from ``seed`` use."""
         raise NotImplementedError
 
-    def check_seeds(self, config: dict) -> None:
-        """Refuse demonstration seeds (``data.seed``, ``data.n_demos``) that may meet the evaluation's.
+    def check_seeds(self, data, ev) -> None:
+        """Refuse demonstration seeds (``data.seed``, ``data.n_demos``) that may meet the evaluation's
+        (``eval.seed``, ``eval.rollouts``).
 
         Raises:
             ValueError: naming the shared seeds.
@@ -58,13 +62,13 @@ class Suite:
         """The same for a dataset already collected or given (``ValueError``)."""
         raise NotImplementedError
 
-    def check_config(self, config: dict, given: DemoDataset | None, train: Sequence[str], evaluate: Sequence[str]):
+    def check_config(self, data, given: DemoDataset | None, train: Sequence[str], evaluate: Sequence[str]):
         """The suite's own checks of a job (``ValueError`` naming what is wrong); none by default."""
 
-    def build_dataset(self, config: dict, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
+    def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         """``n_demos`` demonstrations per task collected from ``seed`` (collected once, cached under ``data.root``)."""
         raise ValueError(f"the {self.name} suite collects no demonstrations")
 
-    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
         """One row per rollout (``tar_rl.collectors.evaluate.COLUMNS``) of ``eval.rollouts`` per task."""
         raise NotImplementedError

@@ -6,7 +6,8 @@ evaluation with the evaluator's per-rollout columns, ``tar_rl.collectors.evaluat
 no branch for any one of them. Adding a simulator is one module with a ``Suite`` subclass and its
 entry in the registration at the bottom of this module.
 
-Methods take the job's settings as the resolved config dict (``config["data"]``, ``config["eval"]``).
+Methods take the sections of the job's typed config they read (``data``, ``ev``: the recipe's ``DataConfig``
+and ``EvalConfig``).
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import pandas as pd
 import torch
@@ -14,6 +15,7 @@ from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.objectives import MixSchedule, TARLoss
 from tar_rl.policies import DataInfo, Policy, build_policy
 
+from .config import DataConfig, EvalConfig, ObjectiveConfig, OptimConfig
 from .errors import ConfigError
 
 __all__ = [
@@ -52,37 +54,36 @@ def given_dataset(path: str) -> DemoDataset:
         raise ConfigError(f"data.path={path}: {err}") from None
 
 
-def make_dataset(config: dict, tasks: Sequence[str], progress: bool = True) -> DemoDataset:
-    """The demonstration dataset: ``data.path`` if given, else collected in ``data.suite`` once, then loaded
-    from ``data.root``."""
-    data = config["data"]
-    if data["path"]:
-        return given_dataset(data["path"])
-    return SUITES[data["suite"]].build_dataset(config, tasks, data["n_demos"], data["seed"], progress)
+def make_dataset(data: DataConfig, tasks: Sequence[str], progress: bool = True) -> DemoDataset:
+    """The demonstration dataset of the ``data`` section: ``data.path`` if given, else collected in ``data.suite``
+    once, then loaded from ``data.root``."""
+    if data.path:
+        return given_dataset(data.path)
+    return SUITES[data.suite].build_dataset(data, tasks, data.n_demos, data.seed, progress)
 
 
-def make_policy(config: dict, info: DataInfo) -> Policy:
-    """The head named ``policy.name`` (registry ``tar_rl.policies.POLICIES``)."""
-    return build_policy(config["policy"], info)
+def make_policy(policy: Any, info: DataInfo) -> Policy:
+    """The head of the ``policy`` section (its head's config dataclass; registry ``tar_rl.policies.POLICIES``)."""
+    return build_policy(policy, info)
 
 
-def make_objective(config: dict, policy: Policy) -> TARLoss:
-    """``TARLoss`` around the head's per-step loss, its schedule in fractions of ``optim.steps``."""
-    obj, steps = config["objective"], config["optim"]["steps"]
-    schedule = MixSchedule(start=round(obj["start"] * steps), ramp=round(obj["ramp"] * steps), shape=obj["shape"])
+def make_objective(obj: ObjectiveConfig, steps: int, seed: int, policy: Policy) -> TARLoss:
+    """``TARLoss`` around the head's per-step loss, its schedule in fractions of ``steps`` (``optim.steps``);
+    ``seed`` (the job's) seeds the controls' draws."""
+    schedule = MixSchedule(start=round(obj.start * steps), ramp=round(obj.ramp * steps), shape=obj.shape)
     loss = TARLoss(
         policy.loss,
-        obj["name"],
-        gamma=obj["gamma"],
-        w_max=obj["w_max"],
-        eps=obj["eps"],
-        cap=obj["cap"],
+        obj.name,
+        gamma=obj.gamma,
+        w_max=obj.w_max,
+        eps=obj.eps,
+        cap=obj.cap,
         schedule=schedule,
-        perturb_fraction=obj["perturb_fraction"],
-        perturb_scale=obj["perturb_scale"],
-        seed=config["seed"],
+        perturb_fraction=obj.perturb_fraction,
+        perturb_scale=obj.perturb_scale,
+        seed=seed,
         loss_key=policy.loss_key,
-        compile_weights=obj["compile"],
+        compile_weights=obj.compile,
         nonfinite="propagate",  # a NaN/inf step loss reaches the trainer's optim.skip_nonfinite handling
     )
     if policy.event_valid is not None:
@@ -90,16 +91,15 @@ def make_objective(config: dict, policy: Policy) -> TARLoss:
     return loss
 
 
-def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
+def make_optimizer(opt: OptimConfig, params) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
     """AdamW and its schedule: linear warm-up over ``optim.warmup`` steps, then cosine or constant."""
-    opt = config["optim"]
-    optimizer = torch.optim.AdamW(params, lr=opt["lr"], betas=tuple(opt["betas"]), weight_decay=opt["weight_decay"])
-    steps, warmup, floor = opt["steps"], opt["warmup"], opt["min_lr_ratio"]
+    optimizer = torch.optim.AdamW(params, lr=opt.lr, betas=tuple(opt.betas), weight_decay=opt.weight_decay)
+    steps, warmup, floor = opt.steps, opt.warmup, opt.min_lr_ratio
 
     def factor(step: int) -> float:
         if step < warmup:
             return (step + 1) / warmup
-        if opt["decay"] == "constant":
+        if opt.decay == "constant":
             return 1.0
         progress = min(1.0, (step - warmup) / max(1, steps - warmup))
         return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
@@ -108,17 +108,19 @@ def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.o
 
 
 def make_evaluator(
-    config: dict,
+    ev: EvalConfig,
+    data: DataConfig,
     tasks: Sequence[str],
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
     suite: str | None = None,
 ) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
-    """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy.
+    """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy, with the
+    ``eval`` section's settings.
 
-    ``validate(config)["suite"]`` names the suite of a ``data.path`` dataset. ``shard=(rank, world)``
+    ``validate(config).suite`` names the suite of a ``data.path`` dataset. ``shard=(rank, world)``
     runs that share of the rollouts on this process's share of the cores. A MetaWorld policy reading
     ``pixels`` gets camera images of ``data.image_size``.
     """
-    run_suite = SUITES[suite or config["data"]["suite"]]
-    return lambda actor: run_suite.evaluate(config, actor, list(tasks), progress, shard)
+    run_suite = SUITES[suite or data.suite]
+    return lambda actor: run_suite.evaluate(ev, data, actor, list(tasks), progress, shard)

@@ -23,6 +23,8 @@ batch 64 x 16 and 20 evaluation rollouts per task: about 10 minutes on 2 CPU cor
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,6 +32,8 @@ from omegaconf import MISSING
 
 from tar_rl.objectives import WEIGHTINGS
 from tar_rl.policies import POLICIES
+
+from .errors import ConfigError
 
 __all__ = [
     "DEFAULT_TASKS",
@@ -41,8 +45,10 @@ __all__ = [
     "ObjectiveConfig",
     "OptimConfig",
     "TrainConfig",
+    "config_dict",
     "default_config",
     "register_configs",
+    "typed_config",
 ]
 
 # Two tasks per difficulty group of the paper (easy, medium, hard, very_hard). The easy ones are
@@ -304,13 +310,14 @@ class TrainConfig:
     """
 
     defaults: list[Any] = field(default_factory=_defaults)
-    objective: Any = MISSING
+    objective: ObjectiveConfig = MISSING
+    # Any: each head has its own config dataclass (``POLICIES[name].config``).
     policy: Any = MISSING
-    data: Any = MISSING
-    eval: Any = MISSING
-    optim: Any = MISSING
-    logging: Any = MISSING
-    diagnostics: Any = MISSING
+    data: DataConfig = MISSING
+    eval: EvalConfig = MISSING
+    optim: OptimConfig = MISSING
+    logging: LoggingConfig = MISSING
+    diagnostics: DiagnosticsConfig = MISSING
     # A dict, not a dataclass: the key is the Python keyword ``from`` (``init.from=...``).
     init: dict[str, str | None] = field(default_factory=_default_init)
     seed: int = 0
@@ -363,11 +370,55 @@ def register_configs() -> None:
 def default_config(objective: str, policy: str) -> dict:
     """The default job's settings for ``objective`` and the head ``policy``, as a plain dict (what ``tar-rl train
     objective=<objective> policy=<policy>`` resolves to). A run's identity is measured against it."""
-    import dataclasses
-
     presets = {group: options["default"] for group, options in PRESETS.items()}
     head = POLICIES.get(policy).config(name=policy)
-    config = dataclasses.asdict(TrainConfig(objective=ObjectiveConfig(name=objective), policy=head, **presets))
+    return config_dict(TrainConfig(objective=ObjectiveConfig(name=objective), policy=head, **presets))
+
+
+def config_dict(cfg: TrainConfig) -> dict:
+    """The settings of a typed config as a plain dict: what a run's ``config.yaml``, checkpoint and summary hold
+    and what its name is computed from (Hydra's ``defaults`` and ``hydra`` nodes left out)."""
+    config = dataclasses.asdict(cfg)
     config.pop("defaults", None)
     config.pop("hydra", None)
     return config
+
+
+# The sections of TrainConfig that are one dataclass each; ``policy`` is the config dataclass of its head.
+_SECTIONS: dict[str, type] = {
+    "objective": ObjectiveConfig,
+    "data": DataConfig,
+    "eval": EvalConfig,
+    "optim": OptimConfig,
+    "logging": LoggingConfig,
+    "diagnostics": DiagnosticsConfig,
+}
+
+
+def _node(where: str, cls: type, values: dict) -> Any:
+    """``cls(**values)``, refusing the settings ``cls`` does not have (named, with the valid ones)."""
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ConfigError(f"{where} has no setting(s) {unknown}; valid: {sorted(known)}")
+    return cls(**values)
+
+
+def typed_config(config: dict) -> TrainConfig:
+    """The typed config of a plain dict of settings (a composed job's or a run's saved one): each section its
+    dataclass, ``policy`` the config dataclass of the head it names.
+
+    Values are taken as they are: their checks are ``tar_rl.recipes.validate.validate``'s, which is how a
+    job's typed config is made. Settings the dict lacks take their defaults.
+
+    Raises:
+        ConfigError: a setting no section has, or a head that is not registered.
+    """
+    values = copy.deepcopy(config)
+    head = values.pop("policy", {})
+    name = head.get("name")
+    if name not in POLICIES:
+        raise ConfigError(f"policy.name={name!r} is not valid; choose one of {list(POLICIES)}")
+    nodes = {key: _node(key, cls, values.pop(key, {})) for key, cls in _SECTIONS.items()}
+    nodes["policy"] = _node(f"policy {name!r}", POLICIES.get(name).config, head)
+    return _node("the config", TrainConfig, {**values, **nodes})

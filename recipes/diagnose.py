@@ -17,46 +17,48 @@ from tar_rl.collectors.suites import SUITES, Suite
 from tar_rl.data import DemoDataset
 from tar_rl.objectives import TARLoss
 
+from .config import TrainConfig
+
 __all__ = ["check_heldout_seeds", "fit_summary", "heldout_dataset", "step_table"]
 
 
-def _heldout_suite(config: dict) -> Suite | None:
+def _heldout_suite(cfg: TrainConfig) -> Suite | None:
     """The suite that collects the held-out demonstrations: the job's, when it collects its own data."""
-    if config["diagnostics"]["heldout_demos"] < 1 or config["data"]["path"]:
+    if cfg.diagnostics.heldout_demos < 1 or cfg.data.path:
         return None
-    suite = SUITES.get(config["data"]["suite"])
+    suite = SUITES.get(cfg.data.suite)
     return suite if suite.collects else None
 
 
-def check_heldout_seeds(config: dict) -> None:
+def check_heldout_seeds(cfg: TrainConfig) -> None:
     """Refuse held-out demonstrations whose seeds may meet the training demonstrations' or the evaluation's.
 
     Raises:
         ValueError: naming the shared seeds.
     """
-    suite = _heldout_suite(config)
+    suite = _heldout_suite(cfg)
     if suite is None:
         return
-    diag, data, ev = config["diagnostics"], config["data"], config["eval"]
-    heldout = suite.demo_seeds(diag["heldout_seed"], diag["heldout_demos"])
-    train = suite.demo_seeds(data["seed"], data["n_demos"])
-    evaluation = suite.eval_seeds(ev["seed"], ev["rollouts"])
+    diag, data, ev = cfg.diagnostics, cfg.data, cfg.eval
+    heldout = suite.demo_seeds(diag.heldout_seed, diag.heldout_demos)
+    train = suite.demo_seeds(data.seed, data.n_demos)
+    evaluation = suite.eval_seeds(ev.seed, ev.rollouts)
     for other, what in ((train, "data.seed"), (evaluation, "eval.seed")):
         shared = sorted(heldout & other)
         if shared:
             raise ValueError(
-                f"diagnostics.heldout_seed={diag['heldout_seed']} shares the seeds {shared[:5]} with {what}; "
+                f"diagnostics.heldout_seed={diag.heldout_seed} shares the seeds {shared[:5]} with {what}; "
                 "choose a held-out seed that neither training nor evaluation uses"
             )
 
 
-def heldout_dataset(config: dict, tasks: Sequence[str], progress: bool) -> DemoDataset | None:
+def heldout_dataset(cfg: TrainConfig, tasks: Sequence[str], progress: bool) -> DemoDataset | None:
     """The held-out demonstrations of the training tasks (collected once, cached), or ``None``."""
-    suite = _heldout_suite(config)
+    suite = _heldout_suite(cfg)
     if suite is None:
         return None
-    diag = config["diagnostics"]
-    return suite.build_dataset(config, tasks, diag["heldout_demos"], diag["heldout_seed"], progress)
+    diag = cfg.diagnostics
+    return suite.build_dataset(cfg.data, tasks, diag.heldout_demos, diag.heldout_seed, progress)
 
 
 def step_table(rows: list[tuple], value: str) -> pd.DataFrame:
@@ -68,7 +70,7 @@ def step_table(rows: list[tuple], value: str) -> pd.DataFrame:
 
 
 def fit_summary(
-    config: dict,
+    cfg: TrainConfig,
     objective: TARLoss,
     dataset: DemoDataset,
     heldout: DemoDataset | None,
@@ -80,7 +82,7 @@ def fit_summary(
     """The ``fit`` entry of ``summary.json``.
 
     Args:
-        config: the run's config.
+        cfg: the run's typed config.
         objective: the trained objective (its head's per-step loss and TAR's settings).
         dataset: the training demonstrations.
         heldout: the held-out demonstrations, or ``None``.
@@ -95,11 +97,11 @@ def fit_summary(
         ``heldout`` (``seed``, ``episodes``, ``loss``, ``loss_by_phase``; ``None`` without held-out
         data) and ``alignment`` (:func:`tar_rl.diagnostics.alignment`; ``None`` without held-out data).
     """
-    data, diag, steps = config["data"], config["diagnostics"], config["optim"]["steps"]
-    rows = record(objective, episodes_of(dataset, tasks, diag["train_episodes"]))
+    data, diag, steps = cfg.data, cfg.diagnostics, cfg.optim.steps
+    rows = record(objective, episodes_of(dataset, tasks, diag.train_episodes))
     train, train_loss = step_table(rows, "weight"), step_table(rows, "loss")
     out = {
-        "passes": diagnostics.passes(steps, data["batch_segments"], data["slice_len"], int(dataset.data.shape[0])),
+        "passes": diagnostics.passes(steps, data.batch_segments, data.slice_len, int(dataset.data.shape[0])),
         "demo_steps": int(dataset.data.shape[0]),
         "final_uniform_loss": diagnostics.tail_mean(metrics, "uniform_loss", steps),
         "train_loss": float(train_loss["value"].mean()),
@@ -107,12 +109,12 @@ def fit_summary(
         "alignment": None,
     }
     if heldout is not None:
-        losses = step_table(record(objective, episodes_of(heldout, tasks, diag["heldout_demos"])), "loss")
+        losses = step_table(record(objective, episodes_of(heldout, tasks, diag.heldout_demos)), "loss")
         out["heldout"] = {
-            "seed": diag["heldout_seed"],
+            "seed": diag.heldout_seed,
             "episodes": int(losses["episode"].nunique()),
             "loss": float(losses["value"].mean()),
             "loss_by_phase": diagnostics.phase_means(losses),
         }
-        out["alignment"] = {"bins": diag["bins"], **diagnostics.alignment(train, losses, diag["bins"])}
+        out["alignment"] = {"bins": diag.bins, **diagnostics.alignment(train, losses, diag.bins)}
     return out

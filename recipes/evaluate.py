@@ -17,6 +17,7 @@ from tar_rl.runs import (
 )
 
 from .builders import make_evaluator, make_policy
+from .config import typed_config
 from .rundir import with_defaults
 from .validate import validate
 
@@ -25,14 +26,14 @@ __all__ = ["evaluate_checkpoint", "policy_from_checkpoint"]
 
 def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModuleBase:
     """Rebuild the saved policy (EMA weights if the run kept them) for inference, on CPU."""
-    config = state["config"]
-    policy = make_policy(config, DataInfo.from_dict(state["data_info"]))
+    head = typed_config(state["config"]).policy
+    policy = make_policy(head, DataInfo.from_dict(state["data_info"]))
     weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
     try:
         policy.actor.load_state_dict(weights)
     except RuntimeError as err:
         raise ValueError(
-            f"{path}: the saved weights do not fit the policy {config['policy']['name']!r} built from its config: {err}"
+            f"{path}: the saved weights do not fit the policy {head.name!r} built from its config: {err}"
         ) from None
     return policy.actor.eval()
 
@@ -61,17 +62,18 @@ def evaluate_checkpoint(
     # Evaluating a saved policy needs neither its post-training source nor held-out data.
     config["init"] = {"from": None}
     config["diagnostics"]["heldout_demos"] = 0
-    ev = config["eval"]
+    section = config["eval"]
     for key, value in (("rollouts", rollouts), ("seed", seed), ("horizon", horizon), ("workers", workers)):
         if value is not None:
-            ev[key] = value
+            section[key] = value
     if tasks:
-        ev["tasks"] = list(tasks)
-    checked = validate(config)
+        section["tasks"] = list(tasks)
+    job = validate(config)
+    ev = job.config.eval
     actor = policy_from_checkpoint(state, path)
-    rollouts_df = make_evaluator(config, checked["eval"], progress=progress, suite=checked["suite"])(actor)
-    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev['seed']}.csv"
+    rollouts_df = make_evaluator(ev, job.config.data, job.eval_tasks, progress=progress, suite=job.suite)(actor)
+    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev.seed}.csv"
     write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
-    print(f"{path} (step {state['step']}), {ev['rollouts']} rollouts per task, seed {ev['seed']}; rollouts in {target}")
+    print(f"{path} (step {state['step']}), {ev.rollouts} rollouts per task, seed {ev.seed}; rollouts in {target}")
     print_table(summarize(rollouts_df))
     return rollouts_df

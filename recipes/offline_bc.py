@@ -62,11 +62,11 @@ from tar_rl.runs import (
 
 from . import diagnose, post_training
 from .builders import make_dataset, make_evaluator, make_objective, make_optimizer, make_policy, torch_device
-from .config import CONFIG_NAME, register_configs
+from .config import CONFIG_NAME, TrainConfig, config_dict, register_configs
 from .errors import ConfigError, TrainingError
 from .record import demo_episodes, record_weights
 from .rundir import check_resumable, identity_differences, last_checkpoint, prepare_run_dir, run_name
-from .validate import resolve_config, validate
+from .validate import Job, resolve_config, validate
 
 __all__ = ["Trainer", "hydra_main", "train"]
 
@@ -91,7 +91,8 @@ def _interruption(run_dir: Path, trainer: Trainer | None) -> str:
 
 
 class Trainer:
-    """One training job: built from a resolved config, then :meth:`run` (resume, loop, final evaluation).
+    """One training job: built from a checked :class:`Job` (its typed config and tasks), then :meth:`run` (resume,
+    loop, final evaluation).
 
     Under ``torchrun`` every rank builds a ``Trainer``; the policy's objective is wrapped in
     ``DistributedDataParallel``; each rank draws the same global batch of ``data.batch_segments``
@@ -100,63 +101,61 @@ class Trainer:
     Rank 0 alone writes files and prints; evaluation is sharded over the ranks and gathered.
     """
 
-    def __init__(self, config: dict, tasks: dict, run_dir: Path, resume: dict | None, dist: distributed.Dist):
-        self.config, self.tasks, self.run_dir, self.dist = config, tasks, run_dir, dist
-        data_cfg, self.opt_cfg, self.log_cfg = config["data"], config["optim"], config["logging"]
-        self.progress = self.log_cfg["progress"] and dist.main
-        self.device = torch_device(config["device"], dist.local_rank)
-        if config["threads"]:
-            torch.set_num_threads(config["threads"])
-        torch.manual_seed(config["seed"])
+    def __init__(self, job: Job, run_dir: Path, resume: dict | None, dist: distributed.Dist):
+        cfg = job.config
+        self.cfg, self.job, self.run_dir, self.dist = cfg, job, run_dir, dist
+        self.progress = cfg.logging.progress and dist.main
+        self.device = torch_device(cfg.device, dist.local_rank)
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
         if not dist.main:
             dist.barrier()  # rank 0 collects (or finds) the dataset first; the others then load it
-        self.dataset = make_dataset(config, tasks["train"], progress=self.progress)
-        self.heldout = diagnose.heldout_dataset(config, tasks["train"], progress=self.progress)
+        self.dataset = make_dataset(cfg.data, job.train_tasks, progress=self.progress)
+        self.heldout = diagnose.heldout_dataset(cfg, job.train_tasks, progress=self.progress)
         if dist.main:
             dist.barrier()
-        if config["eval"]["rollouts"]:
-            SUITES[tasks["suite"]].check_dataset(self.dataset, config["eval"]["seed"], config["eval"]["rollouts"])
+        if cfg.eval.rollouts:
+            SUITES[job.suite].check_dataset(self.dataset, cfg.eval.seed, cfg.eval.rollouts)
         self.info = DataInfo.from_metadata(self.dataset.metadata)
-        self.policy = make_policy(config, self.info)
+        self.policy = make_policy(cfg.policy, self.info)
         self.source = None
-        if config["init"].get("from"):
-            self.source = post_training.load_source(config["init"]["from"])
-            post_training.check_fits(self.source, config["policy"]["name"], self.policy, self.info)
+        if cfg.init.get("from"):
+            self.source = post_training.load_source(cfg.init["from"])
+            post_training.check_fits(self.source, cfg.policy.name, self.policy, self.info)
             if resume is None:  # a resumed run reads its own weights from its checkpoint
                 post_training.apply_init(self.policy, self.source)
-        self.objective = make_objective(config, self.policy).to(self.device)
+        self.objective = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, self.policy).to(self.device)
         self.model = self.objective
         if dist.active:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.model = distributed.data_parallel(self.objective, device_ids=ids)
         self.params = [p for p in self.objective.parameters() if p.requires_grad]
-        self.optimizer, self.scheduler = make_optimizer(config, self.params)
+        self.optimizer, self.scheduler = make_optimizer(cfg.optim, self.params)
         self.ema = None
-        if self.opt_cfg["ema"] > 0:
+        if cfg.optim.ema > 0:
             from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-            decay = get_ema_multi_avg_fn(self.opt_cfg["ema"])
+            decay = get_ema_multi_avg_fn(cfg.optim.ema)
             self.ema = AveragedModel(self.policy.actor, multi_avg_fn=decay, use_buffers=True)
-        self.generator = torch.Generator().manual_seed(config["seed"])
+        self.generator = torch.Generator().manual_seed(cfg.seed)
         self.sampler = self.dataset.segments(
-            data_cfg["batch_segments"], data_cfg["slice_len"], keys=self.policy.keys, generator=self.generator
+            cfg.data.batch_segments, cfg.data.slice_len, keys=self.policy.keys, generator=self.generator
         )
-        share = data_cfg["batch_segments"] // dist.world
+        share = cfg.data.batch_segments // dist.world
         self.rows = slice(dist.rank * share, (dist.rank + 1) * share)
         self.evaluator = None  # eval.rollouts=0: training only
-        if config["eval"]["rollouts"]:
+        if cfg.eval.rollouts:
             shard = (dist.rank, dist.world)
             self.evaluator = make_evaluator(
-                config, tasks["eval"], progress=self.progress, shard=shard, suite=tasks["suite"]
+                cfg.eval, cfg.data, job.eval_tasks, progress=self.progress, shard=shard, suite=job.suite
             )
-        self.steps = self.opt_cfg["steps"]
-        self.record_at = (
-            {self.steps if s == -1 else s for s in self.log_cfg["record_weights_at"]} if dist.main else set()
-        )
+        self.steps = cfg.optim.steps
+        self.record_at = {self.steps if s == -1 else s for s in cfg.logging.record_weights_at} if dist.main else set()
         self.episodes = []
         if self.record_at:
             self.episodes = demo_episodes(
-                self.dataset, tasks["train"], self.log_cfg["record_episodes"], self.policy.keys, self.device
+                self.dataset, job.train_tasks, cfg.logging.record_episodes, self.policy.keys, self.device
             )
         self.logs = RunLogs(run_dir)
         self.commit = git_commit()
@@ -210,7 +209,7 @@ class Trainer:
             {
                 "step": self.step,
                 "finished": finished,
-                "config": self.config,
+                "config": config_dict(self.cfg),
                 "data_info": self.info.to_dict(),
                 "policy": self.policy.actor.state_dict(),
                 "ema_policy": ema.module.state_dict() if ema is not None else None,
@@ -241,7 +240,7 @@ class Trainer:
     def train_step(self) -> dict[str, float] | None:
         """One optimiser step on this rank's share of the next global batch; its scalars, or None if skipped."""
         batch = self.sampler.sample()[self.rows].to(self.device, non_blocking=True)
-        use_amp = self.opt_cfg["amp"] and self.device.type == "cuda"
+        use_amp = self.cfg.optim.amp and self.device.type == "cuda"
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=use_amp):
             out = self.model(batch)
         loss = out["loss_tar"]
@@ -249,7 +248,7 @@ class Trainer:
         # Every rank runs backward every step (DDP's gradient all-reduce happens there), so a
         # non-finite loss on one rank is seen by all of them, through the gradients and the flag.
         loss.backward()
-        clip = self.opt_cfg["grad_clip"] if self.opt_cfg["grad_clip"] > 0 else math.inf
+        clip = self.cfg.optim.grad_clip if self.cfg.optim.grad_clip > 0 else math.inf
         grad_norm = torch.nn.utils.clip_grad_norm_(self.params, clip)
         finite = self.dist.all_true(bool(torch.isfinite(loss)) and bool(torch.isfinite(grad_norm)))
         self.step += 1
@@ -257,8 +256,8 @@ class Trainer:
             self.skipped += 1
             self.optimizer.zero_grad(set_to_none=True)
             self.scheduler.step()
-            if self.skipped > self.opt_cfg["skip_nonfinite"]:
-                allowed = self.opt_cfg["skip_nonfinite"]
+            if self.skipped > self.cfg.optim.skip_nonfinite:
+                allowed = self.cfg.optim.skip_nonfinite
                 raise TrainingError(
                     f"non-finite loss or gradient at step {self.step} of {self.steps} (loss={float(loss.detach())}; "
                     f"{self.skipped} such step(s), optim.skip_nonfinite={allowed}); {last_checkpoint(self.run_dir)}: "
@@ -283,7 +282,7 @@ class Trainer:
         """
         if self.evaluator is None:
             return None
-        ema = self.ema if self.config["eval"]["use_ema"] else None
+        ema = self.ema if self.cfg.eval.use_ema else None
         rollouts = self.evaluator(_eval_actor(self.policy.actor, ema))
         if self.dist.active:
             parts = self.dist.all_gather_object(rollouts)
@@ -304,7 +303,7 @@ class Trainer:
 
         if self.dist.main:
             self.logs.write()
-        every, eval_every = self.log_cfg["every"], self.config["eval"]["every"]
+        every, eval_every = self.cfg.logging.every, self.cfg.eval.every
         tick = time.perf_counter()
         self.objective.train()
         bar = tqdm(total=self.steps, initial=self.step, desc="train", unit="step", disable=not self.progress)
@@ -330,11 +329,9 @@ class Trainer:
                     self.evaluate(done)
                     tick = time.perf_counter()
                 if done in self.record_at:
-                    self.logs.weights += record_weights(
-                        self.objective, self.episodes, self.config["data"]["slice_len"], done
-                    )
+                    self.logs.weights += record_weights(self.objective, self.episodes, self.cfg.data.slice_len, done)
                     self.objective.train()
-                if done % self.log_cfg["checkpoint_every"] == 0 and done != self.steps:
+                if done % self.cfg.logging.checkpoint_every == 0 and done != self.steps:
                     self.train_seconds += time.perf_counter() - tick
                     tick = time.perf_counter()
                     self.checkpoint()
@@ -350,14 +347,14 @@ class Trainer:
 
     def diagnose(self) -> dict:
         """The run's fit diagnostics (:func:`diagnose.fit_summary`) at the current weights."""
-        slice_len = self.config["data"]["slice_len"]
+        slice_len = self.cfg.data.slice_len
         keys, device = self.policy.keys, self.device
         fit = diagnose.fit_summary(
-            self.config,
+            self.cfg,
             self.objective,
             self.dataset,
             self.heldout,
-            self.tasks["train"],
+            self.job.train_tasks,
             self.logs.metrics,
             episodes_of=lambda data, tasks, n: demo_episodes(data, tasks, n, keys, device),
             record=lambda objective, episodes: record_weights(objective, episodes, slice_len, self.steps),
@@ -380,12 +377,12 @@ class Trainer:
         ]
 
     def write_summary(self, table: pd.DataFrame | None) -> None:
-        config = self.config
+        cfg = self.cfg
         summary = {
             "run_name": self.run_dir.name,
-            "objective": config["objective"]["name"],
-            "policy": config["policy"]["name"],
-            "seed": config["seed"],
+            "objective": cfg.objective.name,
+            "policy": cfg.policy.name,
+            "seed": cfg.seed,
             "steps": self.steps,
             "finished": True,
             "final": [
@@ -400,7 +397,7 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "final_eval_seconds": self.eval_seconds,
             "world_size": self.dist.world,
-            "config": config,
+            "config": config_dict(cfg),
             "git_commit": self.commit,
             "machine": machine(),
             "versions": {"torch": torch.__version__, **self.dataset.metadata["versions"]},
@@ -411,20 +408,20 @@ class Trainer:
 _LOGGED = ("loss_tar", "uniform_loss", "tar_mix", "weight_max", "weight_ess")
 
 
-def _agree_across_ranks(config: dict, dist: distributed.Dist) -> None:
+def _agree_across_ranks(cfg: TrainConfig, dist: distributed.Dist) -> None:
     """Refuse a job whose ranks were started with different settings (or an indivisible batch)."""
     if not dist.active:
         return
-    settings = dist.all_gather_object(config)
+    settings = dist.all_gather_object(config_dict(cfg))
     for rank, other in enumerate(settings):
         diff = identity_differences(settings[0], other)
         if diff:
             raise ConfigError(
                 f"the ranks were started with different settings (rank 0 vs rank {rank}: {'; '.join(diff)})"
             )
-    if config["data"]["batch_segments"] % dist.world:
+    if cfg.data.batch_segments % dist.world:
         raise ConfigError(
-            f"data.batch_segments={config['data']['batch_segments']} is not divisible by the {dist.world} processes"
+            f"data.batch_segments={cfg.data.batch_segments} is not divisible by the {dist.world} processes"
         )
 
 
@@ -448,13 +445,15 @@ def train(cfg: Any) -> Path:
             the device (the last good checkpoint is named).
         RunInterrupted: Ctrl-C during training (the step and the last checkpoint are named).
     """
-    config = resolve_config(cfg)
-    tasks = validate(config)
-    dist = distributed.init(torch_device(config["device"]).type)
+    job = validate(resolve_config(cfg))
+    settings = job.config
+    # The settings as the run folder holds them: its config.yaml, its name and the check made when resuming.
+    config = config_dict(settings)
+    dist = distributed.init(torch_device(settings.device).type)
     held = contextlib.ExitStack()
     try:
-        _agree_across_ranks(config, dist)
-        run_dir = Path(config["run_dir"] or Path(config["runs_root"]) / run_name(config))
+        _agree_across_ranks(settings, dist)
+        run_dir = Path(settings.run_dir or Path(settings.runs_root) / run_name(config))
         if dist.main:
             prepare_run_dir(run_dir)
             held.enter_context(run_lock(run_dir))
@@ -470,7 +469,7 @@ def train(cfg: Any) -> Path:
             atomic_write(run_dir / "config.yaml", lambda f: f.write(OmegaConf.to_yaml(OmegaConf.create(config))))
         trainer = None
         try:
-            trainer = Trainer(config, tasks, run_dir, resume, dist)
+            trainer = Trainer(job, run_dir, resume, dist)
             table = trainer.run()
         except BaseException as err:
             if not interrupted(err):
@@ -478,7 +477,7 @@ def train(cfg: Any) -> Path:
             raise RunInterrupted(_interruption(run_dir, trainer)) from err
         if dist.main:
             trainer.write_summary(table)
-            rollouts = config["eval"]["rollouts"]
+            rollouts = settings.eval.rollouts
             if table is None:
                 print(f"\n{run_dir}: {trainer.steps} steps; not evaluated (eval.rollouts=0)")
             else:
@@ -487,7 +486,7 @@ def train(cfg: Any) -> Path:
             if trainer.skipped:
                 print(
                     f"{run_dir}: {trainer.skipped} of {trainer.steps} steps were skipped for a non-finite loss or "
-                    f"gradient (optim.skip_nonfinite={config['optim']['skip_nonfinite']})"
+                    f"gradient (optim.skip_nonfinite={settings.optim.skip_nonfinite})"
                 )
         del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()

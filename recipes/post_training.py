@@ -16,12 +16,11 @@ from pathlib import Path
 
 import torch
 
-from tar_rl import runs
 from tar_rl.policies import DataInfo, Policy
 from tar_rl.policies.common import TaskEncoder
 from tar_rl.runs import CHECKPOINT, load_checkpoint
 
-from .config import default_config
+from .rundir import run_name
 
 __all__ = ["InitError", "Source", "apply_init", "check_fits", "load_source"]
 
@@ -90,7 +89,7 @@ def load_source(where: str) -> Source:
         task_ids = tuple(int(i) for i in state["task_ids"])
         info = DataInfo.from_dict(state["data_info"])
         config = state["config"]
-        name = runs.run_name(config, default_config(config["objective"]["name"], config["policy"]["name"]))
+        name = run_name(config)
     except (KeyError, TypeError, ValueError) as err:
         raise InitError(
             f"init.from={where}: the checkpoint lacks {err} (the policy, its data description or the task ids it "

@@ -1,4 +1,8 @@
-"""Run folders of the training job: the run's name and identity, and the checks made before writing into a folder."""
+"""Run folders of the training job: the run's name and identity, and the checks made before writing into a folder.
+
+They read the plain dict of a job's settings, the run folder's format (a run's saved config, or
+:func:`~tar_rl.recipes.config.config_dict` of a typed one).
+"""
 
 from __future__ import annotations
 

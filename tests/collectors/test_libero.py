@@ -336,11 +336,12 @@ def _train_config(tmp_path, *overrides):
 def test_recipe_refuses_libero_without_an_imported_dataset(tmp_path):
     from tar_rl.collectors.suites import SUITES
     from tar_rl.recipes import ConfigError, validate
+    from tar_rl.recipes.config import DataConfig
 
     with pytest.raises(ConfigError, match=r"data\.suite=libero needs data\.path: LIBERO demonstrations cannot be"):
         validate(_train_config(tmp_path, "data.suite=libero"))
     with pytest.raises(ValueError, match=r"cannot be collected here: import LIBERO HDF5 files with `tar-rl data"):
-        SUITES["libero"].build_dataset({}, [SPATIAL_0], 1, 0, False)
+        SUITES["libero"].build_dataset(DataConfig(), [SPATIAL_0], 1, 0, False)
     assert not (tmp_path / "runs").exists()
 
 
@@ -351,7 +352,7 @@ def test_recipe_trains_on_imported_libero_files_and_checks_evaluation_before_wor
     base = (f"data.path={ds.path}", "data.suite=libero")
     # without rollouts: trains, with the dataset's own tasks
     checked = validate(_train_config(tmp_path, *base, "eval.rollouts=0"))
-    assert checked["suite"] == "libero" and checked["train"] == (SPATIAL_0, SPATIAL_1)
+    assert checked.suite == "libero" and checked.train_tasks == (SPATIAL_0, SPATIAL_1)
     run = train(_train_config(tmp_path, *base, "eval.rollouts=0"))
     assert json.loads((run / "summary.json").read_text())["finished"]
     # with rollouts but no LIBERO package: refused before any work, naming the package
@@ -409,7 +410,7 @@ def test_recipe_refuses_evaluation_tasks_outside_the_dataset(tmp_path):
 
     ds = _libero_dataset(tmp_path)
     base = (f"data.path={ds.path}", "data.suite=libero", "eval.rollouts=2")
-    assert validate(_train_config(tmp_path, *base))["eval"] == (SPATIAL_0, SPATIAL_1)
+    assert validate(_train_config(tmp_path, *base)).eval_tasks == (SPATIAL_0, SPATIAL_1)
     with pytest.raises(ConfigError, match=r"eval\.tasks: \['open_the_middle_drawer_of_the_cabinet'\] are not tasks"):
         validate(_train_config(tmp_path, *base, "eval.tasks=[open_the_middle_drawer_of_the_cabinet]"))
 

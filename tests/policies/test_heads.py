@@ -10,7 +10,6 @@ and one tiny training job runs through the recipe. Head-specific checks live in 
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import pickle
@@ -38,9 +37,7 @@ def _head(name: str, seed: int = 0):
 
 
 def _objective(policy, weighting: str = "uniform") -> TARLoss:
-    objective = {**dataclasses.asdict(ObjectiveConfig()), "name": weighting, "start": 0.0, "ramp": 0.0}
-    config = {"objective": objective, "optim": {"steps": 100}, "seed": 0}
-    return make_objective(config, policy)
+    return make_objective(ObjectiveConfig(name=weighting, start=0.0, ramp=0.0), 100, 0, policy)
 
 
 def _batch(seed: int = 0) -> TensorDict:

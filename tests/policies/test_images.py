@@ -7,7 +7,6 @@ subprocess of its own.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import subprocess
@@ -150,14 +149,7 @@ def test_every_head_on_images_reads_pixels_and_proprioception_only(name):
     other["pixels"] = 255 - other["pixels"]
     assert not torch.allclose(act(other), base)
     # Training: the per-step loss reads the same inputs, and the conv encoder learns.
-    objective = make_objective(
-        {
-            "objective": {**dataclasses.asdict(ObjectiveConfig()), "start": 0.0, "ramp": 0.0},
-            "optim": {"steps": 10},
-            "seed": 0,
-        },
-        policy,
-    ).train()
+    objective = make_objective(ObjectiveConfig(start=0.0, ramp=0.0), 10, 0, policy).train()
     segments = _image_segments()
 
     def step_losses(td):

@@ -18,6 +18,7 @@ from tensordict import TensorDict
 from tar_rl import distributed
 from tar_rl.collectors.tasks import task_index
 from tar_rl.recipes import ConfigError, Trainer, run_name, train, validate
+from tar_rl.recipes.config import config_dict
 from tar_rl.runs import CHECKPOINT, load_checkpoint, save_checkpoint
 
 
@@ -33,10 +34,10 @@ def _post(tmp_path, data_root, source, *overrides):
 
 
 def _trainer(config: dict) -> Trainer:
-    tasks = validate(config)
-    run_dir = Path(config["runs_root"]) / run_name(config)
+    job = validate(config)
+    run_dir = Path(config["runs_root"]) / run_name(config_dict(job.config))
     run_dir.mkdir(parents=True)
-    return Trainer(config, tasks, run_dir, None, distributed.init("cpu"))
+    return Trainer(job, run_dir, None, distributed.init("cpu"))
 
 
 def _batch(n: int = 6) -> TensorDict:
@@ -105,8 +106,7 @@ def test_post_training_run_records_its_source_and_is_named_by_it(tmp_path, data_
     moved = tmp_path / "moved" / source.name
     shutil.copytree(source, moved)
     again = _post(tmp_path, data_root, moved)
-    validate(again)
-    assert run_name(again) == run.name
+    assert run_name(config_dict(validate(again).config)) == run.name
 
 
 @pytest.mark.parametrize(

@@ -42,7 +42,7 @@ from tar_rl.recipes import (
     train,
     validate,
 )
-from tar_rl.recipes.config import PRESETS, register_configs
+from tar_rl.recipes.config import PRESETS, register_configs, typed_config
 from tar_rl.runs import CHECKPOINT, load_checkpoint
 
 # -- Config -------------------------------------------------------------------------------------
@@ -53,9 +53,10 @@ from tar_rl.runs import CHECKPOINT, load_checkpoint
 def test_every_registered_objective_and_policy_builds_from_defaults(objective, policy):
     config = compose_config(f"objective={objective}", f"policy={policy}")
     assert config["objective"]["name"] == objective and config["policy"]["name"] == policy
+    cfg = typed_config(config)
     torch.manual_seed(0)
-    built = make_policy(config, DataInfo(chunk_horizon=8, history=2))
-    loss = make_objective(config, built)
+    built = make_policy(cfg.policy, DataInfo(chunk_horizon=8, history=2))
+    loss = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, built)
     chunk_valid = torch.ones(3, 5, 8, dtype=torch.bool)
     chunk_valid[:, -1, 3:] = False  # chunks running past the end of their episode
     history_valid = torch.ones(3, 5, 2, dtype=torch.bool)
@@ -94,7 +95,8 @@ def test_every_preset_composes_and_validates(group, option):
 def test_paper_presets_follow_the_paper():
     config = compose_config("eval=paper", "optim=paper")
     assert (config["eval"]["rollouts"], config["eval"]["seed"], config["eval"]["horizon"]) == (50, 1000, 500)
-    loss = make_objective(config, make_policy(config, DataInfo()))
+    cfg = typed_config(config)
+    loss = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, make_policy(cfg.policy, DataInfo()))
     assert (config["optim"]["steps"], loss.schedule.start, loss.schedule.ramp) == (100_000, 20_000, 30_000)
 
 
@@ -106,8 +108,8 @@ def test_objective_override_sets_the_weighting_and_its_parameters():
 
 
 def test_schedule_fractions_become_steps():
-    config = compose_config("optim.steps=1000", "objective.start=0.2", "objective.ramp=0.3")
-    loss = make_objective(config, make_policy(config, DataInfo()))
+    cfg = typed_config(compose_config("optim.steps=1000", "objective.start=0.2", "objective.ramp=0.3"))
+    loss = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, make_policy(cfg.policy, DataInfo()))
     assert (loss.schedule.start, loss.schedule.ramp) == (200, 300)
 
 
@@ -225,7 +227,7 @@ def test_cli_reports_a_bad_key_and_fails(tmp_path):
 def test_learning_rate_schedule_by_hand():
     config = compose_config("optim.steps=110", "optim.warmup=10", "optim.lr=1.0", "optim.min_lr_ratio=0.1")
     param = torch.nn.Parameter(torch.zeros(1))
-    optimizer, scheduler = make_optimizer(config, [param])
+    optimizer, scheduler = make_optimizer(typed_config(config).optim, [param])
     lrs = []
     for _ in range(110):
         lrs.append(optimizer.param_groups[0]["lr"])
@@ -306,7 +308,7 @@ def test_training_changes_the_policy_that_is_evaluated(smoke_run, data_root):
     run_dir, config = smoke_run
     state = load_checkpoint(run_dir)
     torch.manual_seed(config["seed"])
-    fresh = make_policy(config, DataInfo.from_dict(state["data_info"]))
+    fresh = make_policy(typed_config(config).policy, DataInfo.from_dict(state["data_info"]))
     for name, value in fresh.actor.state_dict().items():
         if name.startswith("module.norm."):
             assert torch.equal(value, state["policy"][name])  # the dataset statistics
