@@ -46,7 +46,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.evaluate import COLUMNS
+from tar_rl.collectors.evaluate import COLUMNS, RolloutPool
 from tar_rl.collectors.suite import Suite
 
 __all__ = [
@@ -454,6 +454,8 @@ class DMControlSuite(Suite):
             data["root"], tasks, n_demos, seed, data["chunk_horizon"], data["history"], verbose=progress
         )
 
-    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
-        ev = config["eval"]
+    def evaluate(
+        self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
+    ):
+        ev = config["eval"]  # (``pool`` unused: the rollouts run in this process)
         return evaluate(actor, tasks, ev["rollouts"], seed=ev["seed"], horizon=ev["horizon"], shard=shard)

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from tar_rl.data import DemoDataset, build_dataset
 
 from . import tasks as mw_tasks
-from .evaluate import MAX_HORIZON, evaluate
+from .evaluate import MAX_HORIZON, RolloutPool, evaluate
 from .suite import Suite
 
 __all__ = ["MetaWorldSuite"]
@@ -55,7 +55,9 @@ class MetaWorldSuite(Suite):
             progress=progress,
         )
 
-    def evaluate(self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+    def evaluate(
+        self, config: dict, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
+    ):
         ev = config["eval"]
         workers = ev["workers"]
         if workers is None and shard[1] > 1:
@@ -70,4 +72,5 @@ class MetaWorldSuite(Suite):
             progress=progress,
             shard=shard,
             image_size=config["data"]["image_size"] if "pixels" in actor.in_keys else 0,
+            pool=pool,
         )

@@ -9,6 +9,7 @@ import pandas as pd
 import torch
 from tensordict.nn import TensorDictModuleBase
 
+from tar_rl.collectors.evaluate import RolloutPool
 from tar_rl.collectors.suites import SUITES
 from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.objectives import MixSchedule, TARLoss
@@ -110,15 +111,17 @@ def make_optimizer(config: dict, params) -> tuple[torch.optim.Optimizer, torch.o
 def make_evaluator(
     config: dict,
     tasks: Sequence[str],
+    pool: RolloutPool,
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
     suite: str | None = None,
 ) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
     """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy.
 
-    ``validate(config)["suite"]`` names the suite of a ``data.path`` dataset. ``shard=(rank, world)``
-    runs that share of the rollouts on this process's share of the cores. A MetaWorld policy reading
-    ``pixels`` gets camera images of ``data.image_size``.
+    ``validate(config)["suite"]`` names the suite of a ``data.path`` dataset. The evaluations run on
+    ``pool``, which the caller closes when its evaluations are over. ``shard=(rank, world)`` runs that
+    share of the rollouts on this process's share of the cores. A MetaWorld policy reading ``pixels``
+    gets camera images of ``data.image_size``.
     """
     run_suite = SUITES[suite or config["data"]["suite"]]
-    return lambda actor: run_suite.evaluate(config, actor, list(tasks), progress, shard)
+    return lambda actor: run_suite.evaluate(config, actor, list(tasks), progress, shard, pool)

@@ -8,6 +8,7 @@ from pathlib import Path
 import pandas as pd
 from tensordict.nn import TensorDictModuleBase
 
+from tar_rl.collectors.evaluate import RolloutPool
 from tar_rl.io import write_csv_atomic
 from tar_rl.metrics import summarize
 from tar_rl.policies import DataInfo
@@ -69,7 +70,8 @@ def evaluate_checkpoint(
         ev["tasks"] = list(tasks)
     checked = validate(config)
     actor = policy_from_checkpoint(state, path)
-    rollouts_df = make_evaluator(config, checked["eval"], progress=progress, suite=checked["suite"])(actor)
+    with RolloutPool() as pool:
+        rollouts_df = make_evaluator(config, checked["eval"], pool, progress=progress, suite=checked["suite"])(actor)
     target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev['seed']}.csv"
     write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
     print(f"{path} (step {state['step']}), {ev['rollouts']} rollouts per task, seed {ev['seed']}; rollouts in {target}")
