@@ -330,7 +330,8 @@ class RolloutPool:
 
             ctx = mp.get_context("spawn")
             with children_ignore_sigint():
-                self._workers = [_Worker(ctx) for _ in range(n)]
+                for _ in range(n):  # one at a time: if a start fails, close() still ends the ones started
+                    self._workers.append(_Worker(ctx))
             self._gl = gl
         return self._workers
 
