@@ -35,9 +35,9 @@ alike, after ``--warmup`` untimed rounds (the first round pays one-off costs):
   evaluator (TorchRL env, policy, bookkeeping, env construction) against the bare loop.
 * ``all_cores``: ``--workers`` processes on both sides, over the same contiguous shards; wall
   time from submission to the last result. Both sides keep their worker processes between
-  rounds (the evaluator's default ``keep_workers=True``, as in a training job that evaluates
-  every few thousand steps), so the warm-up round pays their start-up and the timed rounds
-  measure the steady state.
+  rounds (the evaluator's on one ``RolloutPool``, as in a training job that evaluates every few
+  thousand steps), so the warm-up round pays their start-up and the timed rounds measure the
+  steady state.
 
 Output: a table on stdout and a tidy CSV (default ``benchmarks/results/eval.csv``, written
 atomically), one row per (section, rep) with ``raw_steps_per_s``, ``eval_steps_per_s``, ``ratio``
@@ -237,7 +237,7 @@ def eval_batch(n_jobs, workers, horizon, envs_per_worker) -> int:
     return envs_per_worker or default_envs_per_worker(math.ceil(n_jobs / workers), horizon)
 
 
-def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker) -> tuple[float, pd.DataFrame]:
+def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker, pool) -> tuple[float, pd.DataFrame]:
     from tar_rl.collectors.evaluate import evaluate
 
     start = time.perf_counter()
@@ -250,8 +250,75 @@ def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker) -> tupl
         workers=workers,
         envs_per_worker=envs_per_worker,
         progress=False,
+        pool=pool,
     )
     return int(df["steps"].sum()) / (time.perf_counter() - start), df
+
+
+def run_section(section: str, args, names, workers: int, policy, pool) -> list[dict]:
+    """The rows of one section: ``--reps`` rounds of raw, raw interleaved and eval, and their median."""
+    if section not in ("one_process", "all_cores"):
+        raise ValueError(f"unknown section {section!r}: choose one_process and/or all_cores")
+    rows = []
+    w = 1 if section == "one_process" else workers
+    # The rows are deterministic for a given split into workers and batches (another split
+    # batches the policy's matmuls differently: last-bit differences): one untimed run per
+    # section fixes the steps of every rollout for the raw side (and builds the variations in
+    # this process, for both sides).
+    _, first = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker, pool)
+    steps = {(r.task, r.variation_index): int(r.steps) for r in first.itertuples()}
+    jobs = [(t, k, steps[(t, k)]) for t in names for k in range(args.rollouts)]
+    success, mean_steps = float(first["success"].mean()), float(first["steps"].mean())
+    print(f"{section}: policy success {success:.2f}, {mean_steps:.0f} steps per rollout on average", flush=True)
+    batch = eval_batch(len(jobs), min(w, len(jobs)), args.horizon, args.envs_per_worker)
+    for _ in range(0 if args.quick else args.warmup):
+        run_raw(jobs, w)
+        run_raw(jobs, w, batch)
+        run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker, pool)
+    for rep in range(args.reps):
+        raw = run_raw(jobs, w)
+        raw_il = run_raw(jobs, w, batch)
+        evl, df = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker, pool)
+        if not df[["steps", "success"]].equals(first[["steps", "success"]]):
+            raise RuntimeError(f"{section}: the evaluator's rollouts differ from the first run's")
+        rows.append(
+            {
+                "section": section,
+                "rep": rep,
+                "raw_steps_per_s": raw,
+                "eval_steps_per_s": evl,
+                "ratio": evl / raw,
+                "raw_interleaved_steps_per_s": raw_il,
+                "ratio_interleaved": evl / raw_il,
+                "success_rate": success,
+                "mean_steps": mean_steps,
+            }
+        )
+        print(
+            f"{section:12s} rep {rep}: raw {raw:8.0f}  raw interleaved {raw_il:8.0f}  eval {evl:8.0f} steps/s  "
+            f"eval/raw {evl / raw:.3f}  eval/raw interleaved {evl / raw_il:.3f}",
+            flush=True,
+        )
+    sec = [r for r in rows if r["section"] == section and r["rep"] != "median"]
+    rows.append(
+        {
+            "section": section,
+            "rep": "median",
+            "raw_steps_per_s": float(np.median([r["raw_steps_per_s"] for r in sec])),
+            "eval_steps_per_s": float(np.median([r["eval_steps_per_s"] for r in sec])),
+            "ratio": float(np.median([r["ratio"] for r in sec])),
+            "raw_interleaved_steps_per_s": float(np.median([r["raw_interleaved_steps_per_s"] for r in sec])),
+            "ratio_interleaved": float(np.median([r["ratio_interleaved"] for r in sec])),
+            "success_rate": success,
+            "mean_steps": mean_steps,
+        }
+    )
+    med = rows[-1]
+    print(
+        f"{section:12s} median eval/raw {med['ratio']:.3f}  eval/raw interleaved {med['ratio_interleaved']:.3f}",
+        flush=True,
+    )
+    return rows
 
 
 def main(argv=None) -> pd.DataFrame:
@@ -283,7 +350,7 @@ def main(argv=None) -> pd.DataFrame:
     from common import git_commit
 
     from tar_rl.collectors import tasks
-    from tar_rl.collectors.evaluate import _cpu_count
+    from tar_rl.collectors.evaluate import RolloutPool, _cpu_count
 
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", message="The name target_actor_network_params")  # torchrl's BCLoss
@@ -291,67 +358,9 @@ def main(argv=None) -> pd.DataFrame:
     workers = args.workers or _cpu_count()
     policy = trained_policy(names, args.demos, args.train_steps, args.cache)
     rows = []
-    for section in args.sections.split(","):
-        if section not in ("one_process", "all_cores"):
-            raise ValueError(f"unknown section {section!r}: choose one_process and/or all_cores")
-        w = 1 if section == "one_process" else workers
-        # The rows are deterministic for a given split into workers and batches (another split
-        # batches the policy's matmuls differently: last-bit differences): one untimed run per
-        # section fixes the steps of every rollout for the raw side (and builds the variations in
-        # this process, for both sides).
-        _, first = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
-        steps = {(r.task, r.variation_index): int(r.steps) for r in first.itertuples()}
-        jobs = [(t, k, steps[(t, k)]) for t in names for k in range(args.rollouts)]
-        success, mean_steps = float(first["success"].mean()), float(first["steps"].mean())
-        print(f"{section}: policy success {success:.2f}, {mean_steps:.0f} steps per rollout on average", flush=True)
-        batch = eval_batch(len(jobs), min(w, len(jobs)), args.horizon, args.envs_per_worker)
-        for _ in range(0 if args.quick else args.warmup):
-            run_raw(jobs, w)
-            run_raw(jobs, w, batch)
-            run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
-        for rep in range(args.reps):
-            raw = run_raw(jobs, w)
-            raw_il = run_raw(jobs, w, batch)
-            evl, df = run_eval(policy, names, args.rollouts, args.horizon, w, args.envs_per_worker)
-            if not df[["steps", "success"]].equals(first[["steps", "success"]]):
-                raise RuntimeError(f"{section}: the evaluator's rollouts differ from the first run's")
-            rows.append(
-                {
-                    "section": section,
-                    "rep": rep,
-                    "raw_steps_per_s": raw,
-                    "eval_steps_per_s": evl,
-                    "ratio": evl / raw,
-                    "raw_interleaved_steps_per_s": raw_il,
-                    "ratio_interleaved": evl / raw_il,
-                    "success_rate": success,
-                    "mean_steps": mean_steps,
-                }
-            )
-            print(
-                f"{section:12s} rep {rep}: raw {raw:8.0f}  raw interleaved {raw_il:8.0f}  eval {evl:8.0f} steps/s  "
-                f"eval/raw {evl / raw:.3f}  eval/raw interleaved {evl / raw_il:.3f}",
-                flush=True,
-            )
-        sec = [r for r in rows if r["section"] == section and r["rep"] != "median"]
-        rows.append(
-            {
-                "section": section,
-                "rep": "median",
-                "raw_steps_per_s": float(np.median([r["raw_steps_per_s"] for r in sec])),
-                "eval_steps_per_s": float(np.median([r["eval_steps_per_s"] for r in sec])),
-                "ratio": float(np.median([r["ratio"] for r in sec])),
-                "raw_interleaved_steps_per_s": float(np.median([r["raw_interleaved_steps_per_s"] for r in sec])),
-                "ratio_interleaved": float(np.median([r["ratio_interleaved"] for r in sec])),
-                "success_rate": success,
-                "mean_steps": mean_steps,
-            }
-        )
-        med = rows[-1]
-        print(
-            f"{section:12s} median eval/raw {med['ratio']:.3f}  eval/raw interleaved {med['ratio_interleaved']:.3f}",
-            flush=True,
-        )
+    with RolloutPool() as pool:  # the evaluator's workers and envs, kept between rounds as in a training job
+        for section in args.sections.split(","):
+            rows += run_section(section, args, names, workers, policy, pool)
     for r in rows:
         r.update(
             tasks=",".join(names),

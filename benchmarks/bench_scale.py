@@ -119,13 +119,19 @@ def train_throughput(world: int, steps: int) -> float:
         return steps * B / float(Path(out).read_text())
 
 
-def eval_throughput(workers: int, rollouts: int, horizon: int) -> float:
-    """Environment steps per second of the expert policy through the evaluator."""
+def eval_throughput(workers: int, rollouts: int, horizon: int, pool) -> float:
+    """Environment steps per second of the expert policy through the evaluator, on ``pool`` (a ``RolloutPool``)."""
     from tar_rl.collectors.evaluate import ExpertPolicy, evaluate
 
     start = time.perf_counter()
     rows = evaluate(
-        ExpertPolicy(), EVAL_TASKS, rollouts_per_task=rollouts, horizon=horizon, workers=workers, progress=False
+        ExpertPolicy(),
+        EVAL_TASKS,
+        rollouts_per_task=rollouts,
+        horizon=horizon,
+        workers=workers,
+        progress=False,
+        pool=pool,
     )
     return float(rows["steps"].sum()) / (time.perf_counter() - start)
 
@@ -143,12 +149,16 @@ def main(argv: list[str] | None = None) -> int:
         args.reps, args.steps, args.rollouts = 1, 5, 1
     n = args.procs
     rows = []
-    for rep in range(args.reps):
-        one, many = train_throughput(1, args.steps), train_throughput(n, args.steps)
-        rows.append(("train", rep, "segments/s", one, many, many / (n * one)))
-        horizon = 50 if args.quick else 500
-        one, many = eval_throughput(1, args.rollouts, horizon), eval_throughput(n, args.rollouts, horizon)
-        rows.append(("eval", rep, "env steps/s", one, many, many / (n * one)))
+    from tar_rl.collectors.evaluate import RolloutPool
+
+    with RolloutPool() as pool:  # the evaluator's workers and envs, kept between rounds as in a training job
+        for rep in range(args.reps):
+            one, many = train_throughput(1, args.steps), train_throughput(n, args.steps)
+            rows.append(("train", rep, "segments/s", one, many, many / (n * one)))
+            horizon = 50 if args.quick else 500
+            one = eval_throughput(1, args.rollouts, horizon, pool)
+            many = eval_throughput(n, args.rollouts, horizon, pool)
+            rows.append(("eval", rep, "env steps/s", one, many, many / (n * one)))
     df = pd.DataFrame(rows, columns=["section", "rep", "unit", "one_process", "n_processes", "efficiency"])
     medians = df.groupby("section", sort=False)[["one_process", "n_processes", "efficiency"]].median().reset_index()
     medians.insert(1, "rep", "median")

@@ -6,18 +6,17 @@ Protocol (TAR paper, Sec. III-A): rollout ``k`` of a task runs on variation
 are computed from these rows by ``tar_rl.metrics``.
 
 Execution. The (task, rollout) pairs, in ``TASKS`` order, are cut into ``workers`` contiguous
-shards, one process each ('spawn' context, one torch thread; kept for the next call unless
-``keep_workers=False``). A worker runs its
-shard (interleaved over its tasks) on ``envs_per_worker`` slots of one batched TorchRL env
-(``envs.make_batched_env``: a ``GymWrapper`` around a vector of MetaWorld envs that steps only
-the running slots): the policy is called once per step on the whole batch (under
+shards, one worker process each (a :class:`RolloutPool`'s, kept for the job's next evaluation). A
+worker runs its shard (interleaved over its tasks) on ``envs_per_worker`` slots of one batched
+TorchRL env (``envs.make_batched_env``: a ``GymWrapper`` around a vector of MetaWorld envs that
+steps only the running slots): the policy is called once per step on the whole batch (under
 ``torch.no_grad``, in eval mode). A slot whose rollout ends gets the shard's next rollout (the
 next rollout of its own task if any, keeping its env; else its env swapped; then reset through
 torchrl's partial ``_reset``), so batches stay full. Bare MetaWorld envs are reused by later
-rollouts of their task and kept in the process for the next evaluation (``clear_env_cache``);
-a new env of a task copies the task's compiled MuJoCo model (``tasks.make_env``). Workers get
-the variations from the parent when it has them, and hand back the ones they built. The
-``task_id`` entry tells each row of the batch its task.
+rollouts of their task and kept in the process for the pool's next evaluation; a new env of a
+task copies the task's compiled MuJoCo model (``tasks.make_env``). Workers get the variations
+from the parent when it has them, and hand back the ones they built. The ``task_id`` entry tells
+each row of the batch its task.
 
 The policy is sent to the workers by pickling: it must be picklable (an ``nn.Module``-based
 ``TensorDictModule`` is; a lambda inside it is not). ``workers=1`` runs in this process.
@@ -31,13 +30,16 @@ non-finite actions is a bug in the policy: it raises, naming the task and step.
 from __future__ import annotations
 
 import collections
+import contextlib
 import itertools
 import math
 import os
+import pickle
+import traceback
 import warnings
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.reduction import ForkingPickler
 
 import numpy as np
 import pandas as pd
@@ -53,8 +55,7 @@ __all__ = [
     "COLUMNS",
     "MAX_HORIZON",
     "ExpertPolicy",
-    "clear_env_cache",
-    "close_workers",
+    "RolloutPool",
     "default_envs_per_worker",
     "evaluate",
 ]
@@ -163,8 +164,8 @@ def evaluate(
     envs_per_worker: int | None = None,
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
-    keep_workers: bool = True,
     image_size: int = 0,
+    pool: RolloutPool | None = None,
 ) -> pd.DataFrame:
     """Evaluate ``policy`` on ``tasks_spec`` (see ``tasks.resolve_tasks``); one row per rollout (``COLUMNS``).
 
@@ -184,31 +185,21 @@ def evaluate(
             (task, rollout) list, e.g. one share per process of a distributed job. The rows of
             the ``count`` shards, concatenated and sorted by ``task_id`` and ``variation_index``,
             are the rows of the whole evaluation (each rollout depends only on its variation).
-        keep_workers: keep the worker processes (and their envs, compiled models and variations)
-            for the next call with the same number of workers, as a training job that evaluates
-            every few thousand steps does: starting a process and importing torch takes seconds.
-            ``close_workers()`` ends them (they also end with this process).
         image_size: ``S > 0``: the policy also reads ``pixels`` (``[N, 3, S, S]`` uint8), the
             camera image of each slot's current observation (:mod:`tar_rl.collectors.render`).
             Rendering runs in worker processes (at least one) started with ``MUJOCO_GL=egl``
             unless it is set.
+        pool: the :class:`RolloutPool` of the job's evaluations (its worker processes and idle envs
+            serve this call and the next ones); default: a pool of this call alone, closed before it returns.
 
     Rows are ordered by task (``TASKS`` order) then rollout, whatever the number of workers.
     """
+    if pool is not None and pool.closed:
+        raise ValueError("evaluate: the RolloutPool is closed")
     _check_args(policy, rollouts_per_task, horizon, workers, envs_per_worker)
-    index, count = shard
-    if not (isinstance(count, int) and count >= 1 and isinstance(index, int) and 0 <= index < count):
-        raise ValueError(f"shard must be (index, count) with 0 <= index < count, got {shard!r}")
-    names = tasks.resolve_tasks(tasks_spec)
-    jobs = [(task, k) for task in names for k in range(rollouts_per_task)][index::count]
-    if not jobs:
+    shards, batch = _plan(tasks_spec, rollouts_per_task, horizon, workers, envs_per_worker, shard)
+    if not shards:
         return pd.DataFrame([], columns=list(COLUMNS))
-    if workers is None:
-        workers = max(1, min(_cpu_count(), math.ceil(len(jobs) / _MIN_BATCH)))
-    workers = min(workers, len(jobs))
-    batch = envs_per_worker or default_envs_per_worker(math.ceil(len(jobs) / workers), horizon)
-    bounds = np.linspace(0, len(jobs), workers + 1).round().astype(int)
-    shards = [_interleave(jobs[a:b]) for a, b in itertools.pairwise(bounds) if b > a]
     if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size < 0:
         raise ValueError(f"image_size must be a non-negative integer (0: no images), got {image_size!r}")
     if image_size:
@@ -218,99 +209,227 @@ def evaluate(
 
     from tqdm import tqdm
 
-    bar = tqdm(total=len(jobs), desc="evaluate", unit="rollout", disable=not progress)
-    rows: list[dict] = []
-    try:
+    with contextlib.ExitStack() as stack:
+        if pool is None:
+            pool = stack.enter_context(RolloutPool())
+        bar = stack.enter_context(
+            tqdm(total=sum(map(len, shards)), desc="evaluate", unit="rollout", disable=not progress)
+        )
         if len(shards) == 1 and not image_size:
-            rows = _run_shard(policy, shards[0], seed, horizon, batch, progress=bar.update)
+            rows = _run_shard(policy, shards[0], seed, horizon, batch, pool.envs, bar.update)
         else:
-            pool, queue = _worker_pool(len(shards))
-            while not queue.empty():  # progress left over from an interrupted call
-                queue.get()
-            try:
-                with children_ignore_sigint():  # the pool starts its workers on submit
-                    futures = [
-                        pool.submit(
-                            _worker, policy, shard, seed, horizon, batch, _known_variations(shard, seed), image_size
-                        )
-                        for shard in shards
-                    ]
-                pending = set(futures)
-                while pending:
-                    pending = {f for f in pending if not f.done()}
-                    while not queue.empty():
-                        bar.update(queue.get())
-                    if pending:
-                        _wait_any(pending)
-                for f in futures:
-                    shard_rows, built = f.result()  # re-raises a worker's error
-                    rows.extend(shard_rows)
-                    tasks.add_variations(built)  # the next evaluation's workers get them
-                bar.update(len(jobs) - bar.n)  # counts still in the queue's pipe are drained next call
-            except BaseException as err:
-                if not isinstance(err, Exception):
-                    close_workers(terminate=True)  # interrupted: the running shards are not waited for
-                elif isinstance(err, BrokenProcessPool):
-                    close_workers()  # a worker died: start afresh next time
-                raise
-            finally:
-                if not keep_workers:
-                    close_workers()
-    finally:
-        bar.close()
+            rows = pool._run(policy, shards, seed, horizon, batch, image_size, bar.update)
     rows.sort(key=lambda row: (row["task_id"], row["variation_index"]))
     return pd.DataFrame(rows, columns=list(COLUMNS))
 
 
-# The worker processes kept between evaluate() calls: the executor, the progress queue (handed to
-# the workers when they start: no manager process, so nothing outlives a killed parent), and the
-# number of workers.
-_POOL: dict = {}
-_PROGRESS = None  # in a worker: the queue its progress goes to
+def _plan(tasks_spec, rollouts_per_task, horizon, workers, envs_per_worker, shard) -> tuple[list[list], int]:
+    """The (task, k) pairs of this ``shard`` cut into one interleaved list per worker, and the batch size."""
+    index, count = shard
+    if not (isinstance(count, int) and count >= 1 and isinstance(index, int) and 0 <= index < count):
+        raise ValueError(f"shard must be (index, count) with 0 <= index < count, got {shard!r}")
+    names = tasks.resolve_tasks(tasks_spec)
+    jobs = [(task, k) for task in names for k in range(rollouts_per_task)][index::count]
+    if not jobs:
+        return [], 0
+    if workers is None:
+        workers = max(1, min(_cpu_count(), math.ceil(len(jobs) / _MIN_BATCH)))
+    workers = min(workers, len(jobs))
+    batch = envs_per_worker or default_envs_per_worker(math.ceil(len(jobs) / workers), horizon)
+    bounds = np.linspace(0, len(jobs), workers + 1).round().astype(int)
+    return [_interleave(jobs[a:b]) for a, b in itertools.pairwise(bounds) if b > a], batch
 
 
-def _init_worker(queue) -> None:
-    global _PROGRESS
-    _PROGRESS = queue
+class RolloutPool:
+    """The evaluation worker processes of a job and the bare MetaWorld envs kept between its evaluations.
+
+    A training job evaluates every few thousand steps; starting a process and importing torch takes
+    seconds, building a MetaWorld env ~0.14 s. Whoever runs a job's evaluations (the training job,
+    ``tar-rl eval``, a benchmark) creates one pool, passes it to each :func:`evaluate` call and closes it
+    at the end::
+
+        with RolloutPool() as pool:
+            early = evaluate(policy, "mt10", pool=pool)
+            final = evaluate(policy, "mt10", pool=pool)  # the same processes, envs and variations
+
+    Worker processes ('spawn' context, one torch thread, Ctrl-C ignored: see
+    ``tar_rl.errors.children_ignore_sigint``) start at the first evaluation that needs them and are
+    replaced when one asks for another number of them or runs under another ``MUJOCO_GL`` (MuJoCo
+    reads it once, when a worker imports it), when one of them has died, and after an interrupted
+    evaluation. Each worker keeps its own idle envs and variations; ``envs`` holds the ones of the
+    evaluations run in this process (``workers=1``).
+
+    ``close()``, or leaving the ``with`` block (an exception included), ends the workers and closes the
+    envs; a closed pool refuses evaluations. A worker also exits when its pipe to this process
+    closes, so none outlives a killed parent, and is daemonic, so none outlives a parent that exits
+    without closing its pool.
+    """
+
+    #: Seconds an idle worker gets to close its envs and exit before it is terminated.
+    exit_timeout = 10.0
+
+    def __init__(self) -> None:
+        self.envs = _EnvCache()
+        self._workers: list[_Worker] = []
+        self._gl: str | None = None
+        self._closed = False
+
+    def __enter__(self) -> RolloutPool:
+        if self._closed:
+            raise ValueError("the RolloutPool is closed")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        """Whether ``close()`` was called."""
+        return self._closed
+
+    @property
+    def pids(self) -> tuple[int, ...]:
+        """The process ids of the running workers (empty before the first evaluation that needs them)."""
+        return tuple(worker.process.pid for worker in self._workers)
+
+    def close(self) -> None:
+        """End the worker processes and close the idle envs; the pool refuses evaluations from then on."""
+        self._closed = True
+        self._stop_workers()
+        self.envs.clear()
+
+    def _run(self, policy, shards, seed, horizon, batch, image_size, progress) -> list[dict]:
+        """Run each shard on its own worker; the rows in shard order (raises the first shard's error, if any)."""
+        # Every job is pickled before any is sent: a policy that does not pickle leaves the workers idle.
+        jobs = [
+            ForkingPickler.dumps((policy, shard, seed, horizon, batch, _known_variations(shard, seed), image_size))
+            for shard in shards
+        ]
+        workers = self._start_workers(len(shards))
+        try:
+            for worker, job in zip(workers, jobs):
+                worker.send(job)
+            replies = _gather(workers, progress)
+        except BaseException:
+            self._stop_workers()  # interrupted or a worker died: the running shards are not waited for
+            raise
+        rows: list[dict] = []
+        for (kind, result, trace), worker in zip(replies, workers):
+            if kind == "error":
+                raise result from _RemoteTraceback(f"in evaluation worker {worker.process.pid}:\n{trace}")
+            shard_rows, built = result
+            rows.extend(shard_rows)
+            tasks.add_variations(built)  # the next evaluation's workers get them
+        return rows
+
+    def _start_workers(self, n: int) -> list[_Worker]:
+        gl = os.environ.get("MUJOCO_GL")
+        if len(self._workers) != n or self._gl != gl or not all(w.process.is_alive() for w in self._workers):
+            self._stop_workers()
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            with children_ignore_sigint():
+                for _ in range(n):  # one at a time: if a start fails, close() still ends the ones started
+                    self._workers.append(_Worker(ctx))
+            self._gl = gl
+        return self._workers
+
+    def _stop_workers(self) -> None:
+        """End the workers: an idle one closes its envs and exits, a busy one is terminated at once."""
+        workers, self._workers = self._workers, []
+        for worker in workers:
+            if worker.busy:
+                worker.process.terminate()
+            worker.conn.close()  # an idle worker's recv ends: it exits
+        for worker in workers:
+            worker.process.join(self.exit_timeout)
+            if worker.process.is_alive():
+                worker.process.terminate()
+                worker.process.join()
+
+
+class _RemoteTraceback(Exception):
+    """The traceback of a worker's error, as text (the ``__cause__`` of the error raised here)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class _Worker:
+    """One worker process (running ``_serve``) and this process's end of the pipe to it."""
+
+    def __init__(self, ctx) -> None:
+        self.conn, there = ctx.Pipe()
+        self.process = ctx.Process(target=_serve, args=(there,), name="tar-rl-evaluate", daemon=True)
+        self.process.start()
+        there.close()  # the worker holds the only other end: it reads EOF once this process closes its own
+        self.busy = False  # a job was sent whose reply is not read yet
+
+    def send(self, job: bytes) -> None:
+        self.busy = True
+        self.conn.send_bytes(job)
+
+
+def _gather(workers: list[_Worker], progress) -> list[tuple]:
+    """Each worker's reply ``(kind, result, traceback)`` to its job; its progress messages go to ``progress``."""
+    from multiprocessing.connection import wait
+
+    replies: list = [None] * len(workers)
+    waiting = {worker.conn: i for i, worker in enumerate(workers)}
+    while waiting:
+        for conn in wait(list(waiting)):
+            i = waiting[conn]
+            try:
+                message = conn.recv()
+            except EOFError:  # the worker ended without replying
+                process = workers[i].process
+                process.join(1.0)
+                raise BrokenProcessPool(
+                    f"evaluation worker {process.pid} ended while running its rollouts (exit code {process.exitcode})"
+                ) from None
+            if message[0] == "progress":
+                progress(message[1])
+                continue
+            workers[i].busy = False
+            replies[i] = message
+            del waiting[conn]
+    return replies
+
+
+def _serve(conn) -> None:
+    """A worker process: run each job received on ``conn``, send back its progress and its reply, until EOF.
+
+    A job is ``(policy, shard, seed, horizon, batch, variations, image_size)``; the reply is
+    ``("done", (rows, variations of the shard), "")`` or ``("error", exception, traceback text)``. The
+    idle envs of the process (``_EnvCache``) serve the next jobs.
+    """
     torch.set_num_threads(1)
+    envs = _EnvCache()
+    try:
+        while True:
+            try:
+                job = conn.recv_bytes()
+            except EOFError:  # the pool closed, or its process ended
+                return
+            conn.send(_run_job(job, envs, lambda n: conn.send(("progress", n))))
+    finally:
+        envs.clear()
 
 
-def _worker_pool(n: int):
-    """A 'spawn' process pool of ``n`` workers and their progress queue, kept between calls.
-
-    A pool started under another ``MUJOCO_GL`` (e.g. before image observations asked for EGL) is
-    replaced: MuJoCo reads the variable once, when a worker imports it.
-    """
-    if _POOL.get("workers") != n or _POOL.get("gl") != os.environ.get("MUJOCO_GL"):
-        close_workers()
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")
-        queue = ctx.Queue()
-        _POOL.update(
-            executor=ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker, initargs=(queue,)),
-            queue=queue,
-            workers=n,
-            gl=os.environ.get("MUJOCO_GL"),
-        )
-    return _POOL["executor"], _POOL["queue"]
-
-
-def close_workers(terminate: bool = False) -> None:
-    """End the evaluation worker processes kept by ``evaluate(..., keep_workers=True)``.
-
-    ``terminate=True`` stops them at once instead of letting running rollouts finish (after Ctrl-C,
-    which the workers ignore: see ``tar_rl.errors.children_ignore_sigint``).
-    """
-    executor, queue = _POOL.get("executor"), _POOL.get("queue")
-    _POOL.clear()
-    if executor is not None:
-        if terminate:
-            for process in list((getattr(executor, "_processes", None) or {}).values()):
-                process.terminate()
-        executor.shutdown(wait=True, cancel_futures=True)
-    if queue is not None:
-        queue.close()
+def _run_job(job: bytes, envs: _EnvCache, progress) -> tuple:
+    try:
+        policy, shard, seed, horizon, batch, variations, image_size = pickle.loads(job)
+        tasks.add_variations(variations)
+        rows = _run_shard(policy, shard, seed, horizon, batch, envs, progress, image_size=image_size)
+        return "done", (rows, _known_variations(shard, seed)), ""
+    except Exception as err:
+        trace = traceback.format_exc()
+        try:
+            pickle.loads(ForkingPickler.dumps(err))
+        except Exception:  # an error that does not pickle (or unpickle) goes back as its text
+            err = RuntimeError(f"{type(err).__name__}: {err}")
+        return "error", err, trace
 
 
 def _interleave(shard: list) -> list:
@@ -327,12 +446,6 @@ def _interleave(shard: list) -> list:
     return [col[i] for i in range(max(map(len, columns))) for col in columns if i < len(col)]
 
 
-def _wait_any(futures) -> None:
-    from concurrent.futures import FIRST_COMPLETED, wait
-
-    wait(futures, timeout=0.2, return_when=FIRST_COMPLETED)
-
-
 def _variation_keys(shard, seed) -> set[tuple[str, int]]:
     return {(task, seed + k // tasks.VARIATIONS_PER_SEED) for task, k in shard}
 
@@ -342,43 +455,53 @@ def _known_variations(shard, seed) -> dict:
     return tasks.cached_variations(_variation_keys(shard, seed))
 
 
-def _worker(policy, shard, seed, horizon, batch, variations, image_size=0) -> tuple[list[dict], dict]:
-    """Run one shard in a worker process; returns its rows and the shard's variations (for the parent's cache)."""
-    tasks.add_variations(variations)
-    rows = _run_shard(policy, shard, seed, horizon, batch, progress=_PROGRESS.put, image_size=image_size)
-    return rows, _known_variations(shard, seed)
+class _EnvCache:
+    """Idle bare MetaWorld envs of one process, kept between evaluations, per (env factory, task).
 
+    At most ``limit`` envs in all. Keyed by the factory so that a replaced ``tasks.make_env`` (tests
+    inject failing envs that way) never mixes with others.
+    """
 
-# Idle bare envs kept in this process between evaluate() calls (a training job evaluates every few
-# thousand steps), per (env factory, task); at most _MAX_IDLE_ENVS in all. Keyed by the factory so
-# that a replaced ``tasks.make_env`` (tests inject failing envs that way) never mixes with others.
-_IDLE: dict[tuple, list] = {}
-_MAX_IDLE_ENVS = 64
+    limit = 64
 
+    def __init__(self) -> None:
+        self._idle: dict[tuple, list] = {}
 
-def _idle_count() -> int:
-    return sum(map(len, _IDLE.values()))
+    def __len__(self) -> int:
+        return sum(map(len, self._idle.values()))
 
+    def take(self, factory, task: str):
+        """An idle env of ``task`` built by ``factory``, or None."""
+        idle = self._idle.get((factory, task))
+        return idle.pop() if idle else None
 
-def clear_env_cache() -> None:
-    """Close the bare MetaWorld envs this process keeps between evaluations."""
-    for envs in _IDLE.values():
-        for env in envs:
+    def put(self, factory, task: str, env) -> None:
+        """Keep ``env`` for a later evaluation (closed instead when ``limit`` envs are kept)."""
+        if len(self) < self.limit:
+            self._idle.setdefault((factory, task), []).append(env)
+        else:
             env.close()
-    _IDLE.clear()
+
+    def clear(self) -> None:
+        """Close the kept envs."""
+        for envs in self._idle.values():
+            for env in envs:
+                env.close()
+        self._idle.clear()
 
 
 class _EnvPool:
     """Bare MetaWorld envs of a shard: reused by later rollouts of their task, kept for the next call.
 
     An env is taken from the shard's free envs of its task, else from the process's idle envs
-    (``_IDLE``), else built (``tasks.make_env``: a copy of the task's compiled model after the first).
+    (``cache``), else built (``tasks.make_env``: a copy of the task's compiled model after the first).
     Reusing an env is safe: ``set_task`` + ``reset`` put it in the state a fresh env starts in
     (tested). An env whose rollout failed is closed, never reused.
     """
 
-    def __init__(self, jobs):
+    def __init__(self, jobs, cache: _EnvCache):
         self._factory = tasks.make_env
+        self._cache = cache
         self._free: dict[str, list] = {}
         self._left = collections.Counter(task for task, _ in jobs)  # rollouts not yet started, per task
         self.built = 0
@@ -388,9 +511,9 @@ class _EnvPool:
         free = self._free.setdefault(task, [])
         if free:
             return free.pop()
-        idle = _IDLE.get((self._factory, task))
-        if idle:
-            return idle.pop()
+        idle = self._cache.take(self._factory, task)
+        if idle is not None:
+            return idle
         self.built += 1
         return self._factory(task)
 
@@ -402,25 +525,19 @@ class _EnvPool:
         if self._left[task] > 0:
             self._free[task].append(env)
         else:  # no rollout of this task left in the shard
-            self._retire(task, env)
-
-    def _retire(self, task: str, env) -> None:
-        if _idle_count() < _MAX_IDLE_ENVS:
-            _IDLE.setdefault((self._factory, task), []).append(env)
-        else:
-            env.close()
+            self._cache.put(self._factory, task, env)
 
     def close(self) -> None:
         for task, envs in self._free.items():
             for env in envs:
-                self._retire(task, env)
+                self._cache.put(self._factory, task, env)
         self._free.clear()
 
 
-def _run_shard(policy, shard, seed, horizon, batch, progress, image_size=0) -> list[dict]:
+def _run_shard(policy, shard, seed, horizon, batch, envs: _EnvCache, progress, image_size=0) -> list[dict]:
     was_training = policy.training
     policy.eval()
-    pool = _EnvPool(shard)
+    pool = _EnvPool(shard, envs)
     render = None
     if image_size:
         from tar_rl.collectors.render import PixelRenderer

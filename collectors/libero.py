@@ -57,7 +57,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.evaluate import COLUMNS
+from tar_rl.collectors.evaluate import COLUMNS, RolloutPool
 from tar_rl.collectors.suite import Suite
 from tar_rl.data import load_dataset
 
@@ -549,7 +549,10 @@ class LiberoSuite(Suite):
     def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         raise ValueError(NO_COLLECTION)
 
-    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+    def evaluate(
+        self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
+    ):
+        # (``pool`` unused: the rollouts run in this process)
         metadata = load_dataset(data.path).metadata
         return evaluate(
             actor,

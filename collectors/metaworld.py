@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from tar_rl.data import DemoDataset
 
 from . import tasks as mw_tasks
-from .evaluate import MAX_HORIZON, evaluate
+from .evaluate import MAX_HORIZON, RolloutPool, evaluate
 from .metaworld_data import build_dataset, check_disjoint
 from .suite import Suite
 
@@ -56,7 +56,9 @@ class MetaWorldSuite(Suite):
             progress=progress,
         )
 
-    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
+    def evaluate(
+        self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
+    ):
         workers = ev.workers
         if workers is None and shard[1] > 1:
             workers = max(1, (os.cpu_count() or 1) // shard[1])
@@ -70,4 +72,5 @@ class MetaWorldSuite(Suite):
             progress=progress,
             shard=shard,
             image_size=data.image_size if "pixels" in actor.in_keys else 0,
+            pool=pool,
         )

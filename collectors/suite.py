@@ -7,6 +7,8 @@ from types import MappingProxyType
 
 from tar_rl.data import DemoDataset
 
+from .evaluate import RolloutPool
+
 __all__ = ["Suite"]
 
 
@@ -69,6 +71,12 @@ class Suite:
         """``n_demos`` demonstrations per task collected from ``seed`` (collected once, cached under ``data.root``)."""
         raise ValueError(f"the {self.name} suite collects no demonstrations")
 
-    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int]):
-        """One row per rollout (``tar_rl.collectors.evaluate.COLUMNS``) of ``eval.rollouts`` per task."""
+    def evaluate(
+        self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
+    ):
+        """One row per rollout (``tar_rl.collectors.evaluate.COLUMNS``) of ``eval.rollouts`` per task.
+
+        ``pool``: the job's ``tar_rl.collectors.evaluate.RolloutPool`` (worker processes and envs kept
+        between its evaluations), for a suite that runs its rollouts there.
+        """
         raise NotImplementedError

@@ -37,10 +37,6 @@ NONFINITE_MODES = ("raise", "propagate")
 #: ``compile_weights`` of :class:`TARLoss`: ``auto`` (on CUDA, when triton is installed), ``always``, ``never``.
 COMPILE_MODES = ("auto", "always", "never")
 
-# One compiled copy per weighting function, shared by every TARLoss (nothing compiled is held on a
-# module, so a loss still pickles, deep-copies and saves as before).
-_COMPILED: dict = {}
-
 
 def compiles_weights(compile_weights: str, device: torch.device) -> bool:
     """Whether ``TARLoss(compile_weights=...)`` compiles its weighting for tensors on ``device``:
@@ -219,6 +215,7 @@ class TARLoss(LossModule):
         self.nonfinite = nonfinite
         self.register_buffer("schedule_step", torch.zeros((), dtype=torch.long))
         self._generator = torch.Generator().manual_seed(seed)
+        self._compiled_weights = None  # the weighting through torch.compile, built at its first use
         target = getattr(inner, "target_key", None)
         if target is None:
             target = getattr(getattr(inner, "tensor_keys", None), "action", None)
@@ -238,6 +235,11 @@ class TARLoss(LossModule):
         if self.tensor_keys.event_valid is not None:
             keys.append(self.tensor_keys.event_valid)
         return list(dict.fromkeys(keys))
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state["_compiled_weights"] = None  # a compiled function does not pickle: a copy compiles its own
+        return state
 
     def get_extra_state(self) -> dict:
         return {"generator": self._generator.get_state()}
@@ -334,9 +336,9 @@ class TARLoss(LossModule):
         eager = spec.stochastic or spec.perturb is not None or spec.name == "uniform"
         if eager or not compiles_weights(self.compile_weights, device):
             return spec.weights
-        if spec.name not in _COMPILED:
-            _COMPILED[spec.name] = torch.compile(spec.weights, dynamic=False)
-        return _COMPILED[spec.name]
+        if self._compiled_weights is None:
+            self._compiled_weights = torch.compile(spec.weights, dynamic=False)
+        return self._compiled_weights
 
     def _read_valid(self, tensordict: TensorDictBase) -> Tensor:
         batch = tensordict.batch_size

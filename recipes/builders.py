@@ -10,6 +10,7 @@ import pandas as pd
 import torch
 from tensordict.nn import TensorDictModuleBase
 
+from tar_rl.collectors.evaluate import RolloutPool
 from tar_rl.collectors.suites import SUITES
 from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.objectives import MixSchedule, TARLoss
@@ -111,6 +112,7 @@ def make_evaluator(
     ev: EvalConfig,
     data: DataConfig,
     tasks: Sequence[str],
+    pool: RolloutPool,
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
     suite: str | None = None,
@@ -118,9 +120,10 @@ def make_evaluator(
     """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy, with the
     ``eval`` section's settings.
 
-    ``validate(config).suite`` names the suite of a ``data.path`` dataset. ``shard=(rank, world)``
-    runs that share of the rollouts on this process's share of the cores. A MetaWorld policy reading
-    ``pixels`` gets camera images of ``data.image_size``.
+    ``validate(config).suite`` names the suite of a ``data.path`` dataset. The evaluations run on
+    ``pool``, which the caller closes when its evaluations are over. ``shard=(rank, world)`` runs that
+    share of the rollouts on this process's share of the cores. A MetaWorld policy reading ``pixels``
+    gets camera images of ``data.image_size``.
     """
     run_suite = SUITES[suite or data.suite]
-    return lambda actor: run_suite.evaluate(ev, data, actor, list(tasks), progress, shard)
+    return lambda actor: run_suite.evaluate(ev, data, actor, list(tasks), progress, shard, pool)

@@ -8,6 +8,7 @@ from pathlib import Path
 import pandas as pd
 from tensordict.nn import TensorDictModuleBase
 
+from tar_rl.collectors.evaluate import RolloutPool
 from tar_rl.io import write_csv_atomic
 from tar_rl.metrics import summarize
 from tar_rl.policies import DataInfo
@@ -71,7 +72,10 @@ def evaluate_checkpoint(
     job = validate(config)
     ev = job.config.eval
     actor = policy_from_checkpoint(state, path)
-    rollouts_df = make_evaluator(ev, job.config.data, job.eval_tasks, progress=progress, suite=job.suite)(actor)
+    with RolloutPool() as pool:
+        rollouts_df = make_evaluator(ev, job.config.data, job.eval_tasks, pool, progress=progress, suite=job.suite)(
+            actor
+        )
     target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev.seed}.csv"
     write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
     print(f"{path} (step {state['step']}), {ev.rollouts} rollouts per task, seed {ev.seed}; rollouts in {target}")

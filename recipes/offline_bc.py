@@ -42,6 +42,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed
+from tar_rl.collectors.evaluate import RolloutPool
 from tar_rl.collectors.suites import SUITES
 from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
 from tar_rl.io import atomic_write, write_json_atomic
@@ -144,11 +145,12 @@ class Trainer:
         )
         share = cfg.data.batch_segments // dist.world
         self.rows = slice(dist.rank * share, (dist.rank + 1) * share)
+        self.pool = RolloutPool()  # the evaluations' worker processes, kept until the end of run()
         self.evaluator = None  # eval.rollouts=0: training only
         if cfg.eval.rollouts:
             shard = (dist.rank, dist.world)
             self.evaluator = make_evaluator(
-                cfg.eval, cfg.data, job.eval_tasks, progress=self.progress, shard=shard, suite=job.suite
+                cfg.eval, cfg.data, job.eval_tasks, self.pool, progress=self.progress, shard=shard, suite=job.suite
             )
         self.steps = cfg.optim.steps
         self.record_at = {self.steps if s == -1 else s for s in cfg.logging.record_weights_at} if dist.main else set()
@@ -298,7 +300,14 @@ class Trainer:
     # -- the loop ---------------------------------------------------------------------------
 
     def run(self) -> pd.DataFrame | None:
-        """Train from the current step to ``optim.steps``, evaluate, write the summary; rank 0 gets the table."""
+        """Train from the current step to ``optim.steps``, evaluate, write the summary; rank 0 gets the table.
+
+        The evaluations' worker processes (``pool``) end with it, whatever ends it.
+        """
+        with self.pool:
+            return self._train_and_evaluate()
+
+    def _train_and_evaluate(self) -> pd.DataFrame | None:
         from tqdm import tqdm
 
         if self.dist.main:

@@ -162,3 +162,14 @@ def test_imports_follow_the_layers():
 def test_no_module_reads_another_modules_private_names():
     found = _private_attributes()
     assert not found, "\n".join(found)
+
+
+def test_no_module_rebinds_its_globals():
+    """No function assigns module state (``global``): state lives in objects that their callers own."""
+    found = [
+        f"{_where(path)}:{node.lineno}: global {', '.join(node.names)}"
+        for path in MODULES.values()
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Global)
+    ]
+    assert not found, "\n".join(found)

@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+import signal
+import time
+from concurrent.futures.process import BrokenProcessPool
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -12,7 +18,7 @@ from tensordict.nn import TensorDictModuleBase
 from tar_rl.collectors import evaluate as ev
 from tar_rl.collectors import tasks
 from tar_rl.collectors.envs import make_metaworld_env
-from tar_rl.collectors.evaluate import ExpertPolicy, evaluate
+from tar_rl.collectors.evaluate import ExpertPolicy, RolloutPool, evaluate
 
 EASY = ["reach-v3", "button-press-topdown-v3", "drawer-close-v3"]
 
@@ -380,32 +386,115 @@ def plain_const_rollout(task, k, value, horizon):
 
 def test_reused_envs_give_the_rows_of_fresh_envs():
     # One slot: every rollout after the first refills it, keeping the env of its task (same-task
-    # refill) or swapping it; the second call reuses the envs the first one kept in the process.
-    ev.clear_env_cache()
+    # refill) or swapping it; the second call reuses the envs the first one kept in the pool.
     names = ["reach-v3", "drawer-close-v3"]
-    runs = [
-        evaluate(ConstPolicy(0.7), names, rollouts_per_task=3, horizon=40, workers=1, envs_per_worker=1, progress=False)
-        for _ in range(2)
-    ]
-    assert ev._idle_count() > 0  # envs were kept for the next call
+    with RolloutPool() as pool:
+        runs = [
+            evaluate(ConstPolicy(0.7), names, 3, horizon=40, workers=1, envs_per_worker=1, progress=False, pool=pool)
+            for _ in range(2)
+        ]
+        assert len(pool.envs) > 0  # envs were kept for the next call
     pd.testing.assert_frame_equal(runs[0], runs[1])
     for row in runs[0].itertuples():
         success, steps, total = plain_const_rollout(row.task, row.variation_index, 0.7, 40)
         assert (row.success, row.steps, row[tuple(runs[0].columns).index("return") + 1]) == (success, steps, total)
-    ev.clear_env_cache()
-    assert ev._idle_count() == 0
+    assert len(pool.envs) == 0  # closed with the pool
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _evaluation_workers() -> list:
+    return [p for p in multiprocessing.active_children() if p.name == "tar-rl-evaluate"]
+
+
+def test_the_module_keeps_no_state_and_a_closed_pool_is_refused():
+    for name in ("_POOL", "_IDLE", "_PROGRESS", "close_workers", "clear_env_cache"):
+        assert not hasattr(ev, name)
+    pool = RolloutPool()
+    assert pool.pids == () and not pool.closed  # no process before an evaluation needs one
+    pool.close()
+    with pytest.raises(ValueError, match="closed"):
+        evaluate(ConstPolicy(0.0), "reach", 1, horizon=2, workers=1, progress=False, pool=pool)
+    with pytest.raises(ValueError, match="closed"), pool:
+        pass
 
 
 @pytest.mark.slow
-def test_kept_workers_are_reused_and_give_the_same_rows(expert_rows):
-    ev.close_workers()
-    first = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
-    executor = ev._POOL["executor"]
-    with pytest.raises(ValueError, match="non-finite actions"):  # a worker's error leaves the pool usable
-        evaluate(ConstPolicy(0.0, nan_at_step=2), EASY, 1, horizon=5, workers=2, progress=False)
-    second = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
-    assert ev._POOL["executor"] is executor
+def test_a_pool_keeps_its_workers_between_evaluations_and_close_ends_them(expert_rows):
+    with RolloutPool() as pool:
+        first = evaluate(ExpertPolicy(), EASY, 2, seed=1000, horizon=200, workers=2, progress=False, pool=pool)
+        pids = pool.pids
+        assert len(pids) == 2 and all(map(_alive, pids))
+        with pytest.raises(ValueError, match="non-finite actions"):  # a worker's error leaves the pool usable
+            evaluate(ConstPolicy(0.0, nan_at_step=2), EASY, 1, horizon=5, workers=2, progress=False, pool=pool)
+        second = evaluate(ExpertPolicy(), EASY, 2, seed=1000, horizon=200, workers=2, progress=False, pool=pool)
+        assert pool.pids == pids  # the same processes served the three evaluations
     pd.testing.assert_frame_equal(first, expert_rows)
     pd.testing.assert_frame_equal(second, expert_rows)
-    evaluate(ConstPolicy(0.0), "reach", 2, horizon=3, workers=2, progress=False, keep_workers=False)
-    assert ev._POOL == {}
+    assert pool.closed and pool.pids == ()
+    assert not any(map(_alive, pids))
+    # Without a pool, an evaluation's workers end before it returns.
+    evaluate(ConstPolicy(0.0), "reach", 2, horizon=3, workers=2, progress=False)
+    assert _evaluation_workers() == []
+
+
+@pytest.mark.slow
+def test_an_exception_ends_the_workers_idle_or_running(monkeypatch):
+    with pytest.raises(RuntimeError, match="the job failed"), RolloutPool() as pool:
+        evaluate(ConstPolicy(0.0), "reach", 2, horizon=3, workers=2, progress=False, pool=pool)
+        idle = pool.pids
+        raise RuntimeError("the job failed")
+    assert len(idle) == 2 and not any(map(_alive, idle))
+    # Interrupted (Ctrl-C) while the workers run their shards: they are terminated, not waited for.
+    running = []
+
+    def interrupted(workers, progress):
+        running.extend(w.process.pid for w in workers if w.busy)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ev, "_gather", interrupted)
+    with pytest.raises(KeyboardInterrupt), RolloutPool() as pool:
+        evaluate(ExpertPolicy(), EASY, 2, horizon=200, workers=2, progress=False, pool=pool)
+    assert len(running) == 2 and not any(map(_alive, running))
+    assert _evaluation_workers() == []
+
+
+class _DiesInWorkers(TensorDictModuleBase):
+    """Ends the process it runs in, unless that is the test's own."""
+
+    in_keys = ["observation"]
+    out_keys = ["action"]
+
+    def __init__(self):
+        super().__init__()
+        self.parent = os.getpid()
+
+    def forward(self, td):
+        if os.getpid() != self.parent:
+            os._exit(3)
+        td.set("action", torch.zeros(td.batch_size[0], 4))
+        return td
+
+
+@pytest.mark.slow
+def test_a_dead_worker_is_replaced(expert_rows):
+    with RolloutPool() as pool:
+        with pytest.raises(BrokenProcessPool, match="exit code 3"):
+            evaluate(_DiesInWorkers(), "reach", 2, horizon=3, workers=2, progress=False, pool=pool)
+        assert pool.pids == ()  # the other worker was ended too
+        first = evaluate(ExpertPolicy(), EASY, 2, seed=1000, horizon=200, workers=2, progress=False, pool=pool)
+        pids = pool.pids
+        os.kill(pids[0], signal.SIGKILL)  # an idle worker killed between evaluations
+        while pids[0] in [p.pid for p in _evaluation_workers()]:  # (active_children reaps it once it is dead)
+            time.sleep(0.05)
+        second = evaluate(ExpertPolicy(), EASY, 2, seed=1000, horizon=200, workers=2, progress=False, pool=pool)
+        assert len(pool.pids) == 2 and pool.pids != pids
+    pd.testing.assert_frame_equal(first, expert_rows)
+    pd.testing.assert_frame_equal(second, expert_rows)
+    assert _evaluation_workers() == []

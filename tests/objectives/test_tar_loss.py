@@ -424,6 +424,23 @@ class TestCompile:
         for name in ("uniform", "shuffle", "random", "perturb_high"):
             assert make_loss(name, compile_weights="always")._weight_function(cpu) is WEIGHTINGS[name].weights
 
+    def test_each_loss_owns_its_compiled_weighting_and_pickles_after_compiling(self):
+        import copy
+        import pickle
+
+        from tar_rl.objectives import tar_loss
+
+        assert not hasattr(tar_loss, "_COMPILED")  # nothing compiled is kept by the module
+        cpu = torch.device("cpu")
+        first, second = make_loss(compile_weights="always"), make_loss(compile_weights="always")
+        compiled = first._weight_function(cpu)
+        assert compiled is not WEIGHTINGS["tar"].weights
+        assert first._weight_function(cpu) is compiled  # built once, at its first use
+        assert second._weight_function(cpu) is not compiled
+        for twin in (pickle.loads(pickle.dumps(first)), copy.deepcopy(first)):
+            assert twin._weight_function(cpu) not in (compiled, WEIGHTINGS["tar"].weights)
+        assert first._weight_function(cpu) is compiled
+
     @pytest.mark.slow
     @pytest.mark.parametrize("name", ["tar", "invert"])
     def test_compiled_weighting_matches_eager_through_the_schedule(self, segments, name):

@@ -380,6 +380,39 @@ class _Crash(Exception):
     pass
 
 
+@pytest.mark.slow
+def test_a_runs_evaluations_share_one_pool_that_ends_with_the_run(tmp_path, data_root, monkeypatch):
+    from tar_rl.collectors import metaworld
+
+    pools = []
+    real = metaworld.evaluate
+
+    def recording(*args, pool, **kwargs):
+        pools.append(pool)
+        return real(*args, pool=pool, **kwargs)
+
+    monkeypatch.setattr(metaworld, "evaluate", recording)
+    config = tiny(tmp_path, data_root, "eval.every=10")
+    train(config)
+    assert len(pools) == 3 and all(p is pools[0] for p in pools)  # steps 10 and 20, then the final one
+    assert pools[0].closed
+    # a run that fails after an evaluation closes its pool too
+    pools.clear()
+    original = SegmentSampler.sample
+    calls = {"n": 0}
+
+    def sample(self):
+        calls["n"] += 1
+        if calls["n"] == 15:
+            raise _Crash
+        return original(self)
+
+    monkeypatch.setattr(SegmentSampler, "sample", sample)
+    with pytest.raises(_Crash):
+        train({**config, "runs_root": str(tmp_path / "crashed")})
+    assert len(pools) == 1 and pools[0].closed
+
+
 LOG_FILES = ("metrics.csv", "eval_rollouts.csv", "weights.csv")
 
 
