@@ -127,7 +127,7 @@ def _bare_job(args) -> int:
 
 
 def bench_collect_per_step(names, n_demos, seed, reps) -> list[dict]:
-    from tar_rl.collectors import demos, tasks
+    from tar_rl.collectors.metaworld import demos, tasks
 
     max_attempts = demos.default_max_attempts(n_demos)
     cache: dict = {}
@@ -178,7 +178,7 @@ def bench_collect_per_step(names, n_demos, seed, reps) -> list[dict]:
 
 
 def bench_collect_end_to_end(names, n_demos, seed, workers, reps) -> list[dict]:
-    from tar_rl.collectors import demos
+    from tar_rl.collectors.metaworld import demos
 
     max_attempts = demos.default_max_attempts(n_demos)
     w = max(1, min(workers, len(names)))
@@ -230,7 +230,7 @@ def bench_segments(names, n_demos, seed, workers, reps, root) -> list[dict]:
     from torchrl.objectives import BCLoss
 
     from tar_rl import TARLoss
-    from tar_rl.collectors.metaworld_data import build_dataset
+    from tar_rl.collectors.metaworld.dataset import build_dataset
 
     ds = build_dataset(root, names, n_demos, seed=seed, workers=workers, progress=False, verbose=False)
     torch.manual_seed(0)
@@ -328,7 +328,7 @@ def _job_startup(overrides: list[str], cwd: str) -> float:
 
 
 def bench_startup(quick: bool, workers: int, reps: int, check_reps: int, root: str) -> list[dict]:
-    from tar_rl.collectors.metaworld_data import build_dataset
+    from tar_rl.collectors.metaworld.dataset import build_dataset
     from tar_rl.data import check_content, load_dataset
     from tar_rl.recipes.config import DataConfig
 
@@ -405,7 +405,7 @@ def main(argv=None) -> None:
     import pandas as pd
     import torch
 
-    from tar_rl.collectors import tasks
+    from tar_rl.collectors.metaworld import tasks
 
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", message="Constant")

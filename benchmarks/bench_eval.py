@@ -24,7 +24,7 @@ fix, for each rollout, the steps the raw side replays.
   caches than one env in a row, and a batch runs part-empty at the end of a shard; this side pays
   both, so ``eval / raw_interleaved`` is what the evaluator's own machinery (TorchRL env, policy
   call, bookkeeping) costs, and ``eval / raw`` is the whole price of batched evaluation.
-* ``eval``: ``tar_rl.collectors.evaluate.evaluate`` with the trained policy: batched TorchRL env,
+* ``eval``: ``tar_rl.collectors.metaworld.evaluate.evaluate`` with the trained policy: batched TorchRL env,
   one policy call per batch step, refills, env construction, bookkeeping.
 
 Throughput is executed env steps per second of wall time. Two sections, each repeated
@@ -93,7 +93,7 @@ _RAW_ENVS: dict = {}
 
 def raw_shard(shard, variations=None, rng_seed=0) -> int:
     """Random-action rollouts on bare MetaWorld envs; ``shard``: (task, k, steps) triples. Returns the steps."""
-    from tar_rl.collectors import tasks
+    from tar_rl.collectors.metaworld import tasks
 
     tasks.add_variations(variations or {})
     envs = _RAW_ENVS
@@ -116,8 +116,8 @@ _RAW_IDLE: dict[str, list] = {}  # the interleaved raw side's envs per task, kep
 
 def raw_interleaved_shard(shard, variations=None, rng_seed=0, *, batch: int) -> int:
     """``raw_shard`` on the evaluator's schedule: ``batch`` slots stepped in turn, refilled as it refills them."""
-    from tar_rl.collectors import tasks
-    from tar_rl.collectors.evaluate import _interleave, _Pending
+    from tar_rl.collectors.metaworld import tasks
+    from tar_rl.collectors.metaworld.evaluate import _interleave, _Pending
 
     tasks.add_variations(variations or {})
     rng = np.random.default_rng(rng_seed)
@@ -169,7 +169,7 @@ def trained_policy(names, demos: int, train_steps: int, cache: Path, seed: int =
     """
     import torch
 
-    from tar_rl.collectors.metaworld_data import build_dataset
+    from tar_rl.collectors.metaworld.dataset import build_dataset
     from tar_rl.policies import DataInfo, build_policy
 
     ds = build_dataset(cache, list(names), demos, seed=seed, workers=1, progress=False, verbose=False)
@@ -217,7 +217,7 @@ def run_raw(jobs, workers, batch=None) -> float:
     ``batch``: run each shard on the evaluator's schedule with that many slots (``raw_interleaved_shard``);
     ``None``: one env in a row (``raw_shard``).
     """
-    from tar_rl.collectors import tasks
+    from tar_rl.collectors.metaworld import tasks
 
     shards = _shards(jobs, workers)
     run = raw_shard if batch is None else functools.partial(raw_interleaved_shard, batch=batch)
@@ -232,13 +232,13 @@ def run_raw(jobs, workers, batch=None) -> float:
 
 def eval_batch(n_jobs, workers, horizon, envs_per_worker) -> int:
     """The batch size ``evaluate`` gives each worker (its own rule, called here)."""
-    from tar_rl.collectors.evaluate import default_envs_per_worker
+    from tar_rl.collectors.metaworld.evaluate import default_envs_per_worker
 
     return envs_per_worker or default_envs_per_worker(math.ceil(n_jobs / workers), horizon)
 
 
 def run_eval(policy, names, rollouts, horizon, workers, envs_per_worker, pool) -> tuple[float, pd.DataFrame]:
-    from tar_rl.collectors.evaluate import evaluate
+    from tar_rl.collectors.metaworld.evaluate import evaluate
 
     start = time.perf_counter()
     df = evaluate(
@@ -349,8 +349,8 @@ def main(argv=None) -> pd.DataFrame:
     import torch
     from common import git_commit
 
-    from tar_rl.collectors import tasks
-    from tar_rl.collectors.evaluate import RolloutPool, _cpu_count
+    from tar_rl.collectors.metaworld import tasks
+    from tar_rl.collectors.metaworld.evaluate import RolloutPool, _cpu_count
 
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", message="The name target_actor_network_params")  # torchrl's BCLoss

@@ -10,7 +10,7 @@ Run from the repository root::
   gloo, ``DistributedDataParallel``, as under ``torchrun``) each takes ``64 / N`` segments of the
   same global batch. Throughput = global segments per second; efficiency = throughput(N) /
   (N x throughput(1)), 1 being linear scaling. The two settings alternate over ``--reps`` rounds.
-* ``eval``: ``tar_rl.collectors.evaluate.evaluate`` of the expert policy on the same tasks and
+* ``eval``: ``tar_rl.collectors.metaworld.evaluate.evaluate`` of the expert policy on the same tasks and
   variations with 1 worker process and with N; environment steps per second; efficiency as above.
 
 Output: a table on stdout and ``benchmarks/results/scale.csv`` (one row per section and round, and
@@ -121,7 +121,7 @@ def train_throughput(world: int, steps: int) -> float:
 
 def eval_throughput(workers: int, rollouts: int, horizon: int, pool) -> float:
     """Environment steps per second of the expert policy through the evaluator, on ``pool`` (a ``RolloutPool``)."""
-    from tar_rl.collectors.evaluate import ExpertPolicy, evaluate
+    from tar_rl.collectors.metaworld.evaluate import ExpertPolicy, evaluate
 
     start = time.perf_counter()
     rows = evaluate(
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         args.reps, args.steps, args.rollouts = 1, 5, 1
     n = args.procs
     rows = []
-    from tar_rl.collectors.evaluate import RolloutPool
+    from tar_rl.collectors.metaworld.evaluate import RolloutPool
 
     with RolloutPool() as pool:  # the evaluator's workers and envs, kept between rounds as in a training job
         for rep in range(args.reps):

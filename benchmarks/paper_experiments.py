@@ -332,7 +332,7 @@ def check_families(scale: Scale, families: Sequence[str]) -> None:
 
 def estimate_seconds(scale: Scale, specs: Sequence[Spec], jobs: int) -> float:
     """Wall-clock estimate of the runs: steps x step time + rollouts x rollout time, over ``jobs`` at once."""
-    from tar_rl.collectors.tasks import resolve_tasks
+    from tar_rl.collectors.metaworld.tasks import resolve_tasks
 
     total = 0.0
     for spec in specs:

@@ -200,7 +200,7 @@ def report_critical_windows(specs: Sequence[Spec], folder: Path, prov: dict, tas
         "critical_windows.md": _write_text(folder / "critical_windows.md", md),
         "critical_windows.png": plot_critical_windows(windows, folder / "critical_windows.png", caption=caption),
     }
-    from tar_rl.collectors.tasks import resolve_tasks
+    from tar_rl.collectors.metaworld.tasks import resolve_tasks
 
     first = min(runs, key=lambda r: (r.policy, r.seed))
     wanted = [resolve_tasks([t])[0] for t in tasks]  # "reach" -> "reach-v3", in the order given

@@ -46,8 +46,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.evaluate import COLUMNS, RolloutPool
-from tar_rl.collectors.suite import Suite
+from tar_rl.collectors.metaworld.evaluate import RolloutPool
+from tar_rl.collectors.suite import COLUMNS, Suite
 
 __all__ = [
     "ACTION_DIM",
@@ -277,7 +277,7 @@ def evaluate(
     batch: int = 16,
     shard: tuple[int, int] = (0, 1),
 ) -> pd.DataFrame:
-    """Roll ``policy`` out ``rollouts_per_task`` times per task; one row per rollout (``evaluate.COLUMNS``).
+    """Roll ``policy`` out ``rollouts_per_task`` times per task; one row per rollout (``COLUMNS``).
 
     Rollout ``k`` of a task uses the task's random seed ``seed + k``, stops at its first success
     or at ``horizon`` (at most :data:`MAX_HORIZON`). ``group`` is ``dm_control``; a rollout whose

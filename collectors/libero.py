@@ -11,7 +11,7 @@ it (``pick_up_the_black_bowl_next_to_the_ramekin_and_place_it_on_the_plate``) an
 robomimic importer gives a LIBERO demonstration file (from its ``bddl_file_name`` attribute). Task
 resolution (:func:`resolve_tasks`) asks the installed LIBERO package for the suites' task lists.
 
-Rows. :func:`evaluate` returns one row per rollout with ``tar_rl.collectors.evaluate.COLUMNS``:
+Rows. :func:`evaluate` returns one row per rollout with ``tar_rl.collectors.suite.COLUMNS``:
 ``group`` is the task's suite and ``rho = steps / H_suite``, the suite-wise horizon normalisation
 under which the paper forms Fast20 and NEPS (per task, then per suite and overall through
 ``tar_rl.metrics.summarize``). A rollout stops at its first success (LIBERO's own success check,
@@ -57,8 +57,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.evaluate import COLUMNS, RolloutPool
-from tar_rl.collectors.suite import Suite
+from tar_rl.collectors.metaworld.evaluate import RolloutPool
+from tar_rl.collectors.suite import COLUMNS, Suite
 from tar_rl.data import load_dataset
 
 __all__ = [
@@ -378,7 +378,7 @@ def evaluate(
     obs_keys: Sequence[str] = DEFAULT_OBS_KEYS,
     camera_size: int = 64,
 ) -> pd.DataFrame:
-    """Roll ``policy`` out ``rollouts_per_task`` times per LIBERO task; one row per rollout (``evaluate.COLUMNS``).
+    """Roll ``policy`` out ``rollouts_per_task`` times per LIBERO task; one row per rollout (``COLUMNS``).
 
     Args:
         policy: reads ``observation`` ``[1, D]``, ``task_id`` ``[1]``, ``is_init`` ``[1, 1]``; writes
@@ -443,7 +443,7 @@ def make_row(
     ret: float = 0.0,
     failure: str = "",
 ) -> dict:
-    """One rollout's row (``evaluate.COLUMNS``): ``group = suite``, ``rho = steps / H`` with ``H`` the suite's own.
+    """One rollout's row (``COLUMNS``): ``group = suite``, ``rho = steps / H`` with ``H`` the suite's own.
 
     ``horizon`` (an integer) replaces the suite's ``H`` (:func:`evaluate`'s ``horizon``). A failed
     rollout counts the whole budget, whatever ``steps`` says.

@@ -4,12 +4,28 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from tar_rl.data import DemoDataset
 
-from .evaluate import RolloutPool
+if TYPE_CHECKING:
+    from .metaworld.evaluate import RolloutPool
 
-__all__ = ["Suite"]
+__all__ = ["COLUMNS", "Suite"]
+
+# The per-rollout columns every suite's evaluation returns, in this order.
+COLUMNS = (
+    "task",
+    "task_id",
+    "group",
+    "variation_seed",
+    "variation_index",
+    "success",
+    "steps",
+    "rho",
+    "return",
+    "failure",
+)
 
 
 class Suite:
@@ -74,9 +90,9 @@ class Suite:
     def evaluate(
         self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
     ):
-        """One row per rollout (``tar_rl.collectors.evaluate.COLUMNS``) of ``eval.rollouts`` per task.
+        """One row per rollout (``tar_rl.collectors.suite.COLUMNS``) of ``eval.rollouts`` per task.
 
-        ``pool``: the job's ``tar_rl.collectors.evaluate.RolloutPool`` (worker processes and envs kept
+        ``pool``: the job's ``tar_rl.collectors.metaworld.evaluate.RolloutPool`` (worker processes and envs kept
         between its evaluations), for a suite that runs its rollouts there.
         """
         raise NotImplementedError

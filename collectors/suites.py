@@ -2,7 +2,7 @@
 
 A suite is one :class:`~tar_rl.collectors.suite.Suite` object in the :data:`SUITES` registry. The
 recipe asks every suite the same questions (its tasks, the seeds its demonstrations and evaluations use, a dataset, an
-evaluation with the evaluator's per-rollout columns, ``tar_rl.collectors.evaluate.COLUMNS``) and has
+evaluation with the evaluator's per-rollout columns, ``tar_rl.collectors.suite.COLUMNS``) and has
 no branch for any one of them. Adding a simulator is one module with a ``Suite`` subclass and its
 entry in the registration at the bottom of this module.
 
@@ -17,7 +17,7 @@ from tar_rl.registry import Registry
 
 from .dmc import DMControlSuite
 from .libero import LiberoSuite
-from .metaworld import MetaWorldSuite
+from .metaworld.suite import MetaWorldSuite
 from .suite import Suite
 
 __all__ = ["SUITES", "Suite", "suite_for"]

@@ -10,7 +10,7 @@ import pandas as pd
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors.evaluate import RolloutPool
+from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.collectors.suites import SUITES
 from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.objectives import MixSchedule, TARLoss

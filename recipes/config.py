@@ -149,7 +149,7 @@ class DataConfig:
 
 @dataclass
 class EvalConfig:
-    """Evaluation with the evaluator collectors (``tar_rl.collectors.evaluate``).
+    """Evaluation with the evaluator collectors (``tar_rl.collectors.metaworld.evaluate``).
 
     Attributes:
         tasks: tasks or groups to evaluate; empty: the training tasks.

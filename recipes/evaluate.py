@@ -8,7 +8,7 @@ from pathlib import Path
 import pandas as pd
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors.evaluate import RolloutPool
+from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.io import write_csv_atomic
 from tar_rl.metrics import summarize
 from tar_rl.policies import DataInfo

@@ -42,7 +42,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed
-from tar_rl.collectors.evaluate import RolloutPool
+from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.collectors.suites import SUITES
 from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
 from tar_rl.io import atomic_write, write_json_atomic

@@ -147,7 +147,7 @@ def test_a_planted_upward_import_is_found(tmp_path, monkeypatch):
 
 # The core's remaining imports of MetaWorld's collectors, listed so that no other one can be added and each
 # entry goes when its import goes: the MetaWorld dataset builder still lives in tar_rl.data, and the policies
-# still take MetaWorld's task count and instructions from tar_rl.collectors.tasks.
+# still take MetaWorld's task count and instructions from tar_rl.collectors.metaworld.tasks.
 KNOWN: set[tuple[str, str]] = set()
 
 

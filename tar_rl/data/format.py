@@ -3,7 +3,7 @@
 A dataset folder holds one row per environment step in a ``TensorDictReplayBuffer`` over a
 ``LazyMemmapStorage`` under ``<folder>/buffer`` (written with ``rb.dumps``; ``rb.loads`` reads it back
 in place, without copying) and ``metadata.json`` beside it describing the content. A suite's dataset
-builder (e.g. :mod:`tar_rl.collectors.metaworld_data`) or an importer (:mod:`tar_rl.importers`) turns
+builder (e.g. :mod:`tar_rl.collectors.metaworld.dataset`) or an importer (:mod:`tar_rl.importers`) turns
 episode-contiguous step arrays into the stored ``[N]`` TensorDict with :func:`steps_tensordict` and
 writes the folder crash-safely with :func:`write_dataset`; :func:`load_dataset` opens any of them.
 

@@ -16,7 +16,7 @@ are ``instructions``) to ``[..., dim]``:
   are part of the pretrained policies it fine-tunes.
 
 **Image observations** (:class:`ConvEncoder`, :func:`image_encoder`): with ``observation="image"`` a
-head sees the camera image ``pixels`` (``[..., 3, S, S]`` uint8, see :mod:`tar_rl.collectors.render`)
+head sees the camera image ``pixels`` (``[..., 3, S, S]`` uint8, see :mod:`tar_rl.collectors.metaworld.render`)
 and the robot's own state only: the first :data:`PROPRIO_DIMS` entries of MetaWorld's observation
 (hand position x, y, z and the gripper opening). The object and goal positions of the state vector
 are left out: they must be seen in the image. Every head takes the switch

@@ -15,10 +15,10 @@ import torch
 from paths import REPO
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors import evaluate as ev
-from tar_rl.collectors import tasks
-from tar_rl.collectors.envs import make_metaworld_env
-from tar_rl.collectors.evaluate import ExpertPolicy, RolloutPool, evaluate
+from tar_rl.collectors.metaworld import evaluate as ev
+from tar_rl.collectors.metaworld import tasks
+from tar_rl.collectors.metaworld.envs import make_metaworld_env
+from tar_rl.collectors.metaworld.evaluate import ExpertPolicy, RolloutPool, evaluate
 
 EASY = ["reach-v3", "button-press-topdown-v3", "drawer-close-v3"]
 
@@ -259,7 +259,7 @@ def test_make_metaworld_env_entries():
 
 
 def test_batched_env_gives_the_bare_observations_in_float32():
-    from tar_rl.collectors.envs import make_batched_env
+    from tar_rl.collectors.metaworld.envs import make_batched_env
 
     names = ["reach-v3", "drawer-close-v3"]
     bare, ref = [], []

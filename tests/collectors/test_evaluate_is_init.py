@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors.evaluate import evaluate
+from tar_rl.collectors.metaworld.evaluate import evaluate
 
 
 class _Probe(TensorDictModuleBase):

@@ -19,7 +19,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors import libero
-from tar_rl.collectors.evaluate import COLUMNS
+from tar_rl.collectors.suite import COLUMNS
 from tar_rl.importers import import_robomimic
 from tar_rl.metrics import summarize
 

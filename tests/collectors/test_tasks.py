@@ -1,4 +1,4 @@
-"""The MetaWorld task registry (tar_rl.collectors.tasks): names, ordering, groups, instructions, variations.
+"""The MetaWorld task registry (tar_rl.collectors.metaworld.tasks): names, ordering, groups, instructions, variations.
 
 Expected group members are typed from the TAR paper's 28/11/6/5 grouping of MetaWorld's tasks,
 not copied from the module. Only the last tests build MetaWorld objects
@@ -12,8 +12,8 @@ import pickle
 import numpy as np
 import pytest
 
-from tar_rl.collectors import tasks
-from tar_rl.collectors.tasks import (
+from tar_rl.collectors.metaworld import tasks
+from tar_rl.collectors.metaworld.tasks import (
     DIFFICULTY_GROUPS,
     GROUPS,
     INSTRUCTIONS,

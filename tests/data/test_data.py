@@ -20,8 +20,8 @@ from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
 from tar_rl import TARLoss
-from tar_rl.collectors import demos, tasks
-from tar_rl.collectors.metaworld_data import build_dataset, check_disjoint
+from tar_rl.collectors.metaworld import demos, tasks
+from tar_rl.collectors.metaworld.dataset import build_dataset, check_disjoint
 from tar_rl.data import DatasetError, load_dataset
 from tar_rl.policies import DataInfo
 

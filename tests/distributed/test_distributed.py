@@ -27,8 +27,8 @@ from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
 from tar_rl import TARLoss
-from tar_rl.collectors.evaluate import ExpertPolicy, evaluate
-from tar_rl.collectors.metaworld_data import build_dataset
+from tar_rl.collectors.metaworld.dataset import build_dataset
+from tar_rl.collectors.metaworld.evaluate import ExpertPolicy, evaluate
 from tar_rl.runs import load_checkpoint
 
 B, L = 8, 6

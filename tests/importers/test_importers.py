@@ -300,7 +300,7 @@ def test_cli_errors(h5file, tmp_path):
 
 
 def test_info_on_a_metaworld_dataset(data_root):
-    from tar_rl.collectors.metaworld_data import build_dataset
+    from tar_rl.collectors.metaworld.dataset import build_dataset
 
     ds = build_dataset(data_root, ["reach-v3"], 1, chunk_horizon=2, history=2, workers=0, progress=False, verbose=False)
     info = dataset_info(ds.path)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tar_rl.collectors.tasks import INSTRUCTIONS, TASKS
+from tar_rl.collectors.metaworld.tasks import INSTRUCTIONS, TASKS
 from tar_rl.policies.common import TaskEncoder, instruction_tokens
 
 TEXTS = tuple(INSTRUCTIONS[t] for t in TASKS)  # the instruction of every MetaWorld task id

@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict
 
 from tar_rl import TARLoss
-from tar_rl.collectors.tasks import INSTRUCTIONS, TASKS
+from tar_rl.collectors.metaworld.tasks import INSTRUCTIONS, TASKS
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.diffusion import (
     OctoDiffusion,

@@ -21,7 +21,7 @@ from recipe_helpers import tiny
 from tensordict import TensorDict
 
 from tar_rl import TARLoss
-from tar_rl.collectors.tasks import TASKS
+from tar_rl.collectors.metaworld.tasks import TASKS
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.recipes import make_objective, train
 from tar_rl.recipes.config import ObjectiveConfig

@@ -20,8 +20,8 @@ from recipe_helpers import tiny
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors.evaluate import evaluate
-from tar_rl.collectors.metaworld_data import build_dataset
+from tar_rl.collectors.metaworld.dataset import build_dataset
+from tar_rl.collectors.metaworld.evaluate import evaluate
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.common import ConvEncoder
 from tar_rl.recipes import make_objective, policy_from_checkpoint, train
@@ -36,7 +36,7 @@ INFO = DataInfo(chunk_horizon=H, history=2, image_size=S)
 _REFERENCE = """
 import json, sys
 import mujoco, numpy as np
-from tar_rl.collectors import tasks
+from tar_rl.collectors.metaworld import tasks
 env = tasks.make_env("reach-v3")
 env.set_task(tasks.variation("reach-v3", 0, 0))
 obs, _ = env.reset()

@@ -16,7 +16,7 @@ from recipe_helpers import tiny
 from tensordict import TensorDict
 
 from tar_rl import distributed
-from tar_rl.collectors.tasks import task_index
+from tar_rl.collectors.metaworld.tasks import task_index
 from tar_rl.recipes import ConfigError, Trainer, run_name, train, validate
 from tar_rl.recipes.config import config_dict
 from tar_rl.runs import CHECKPOINT, load_checkpoint, save_checkpoint
@@ -84,7 +84,7 @@ def test_instruction_rows_of_unseen_words_stay_fresh(tmp_path, data_root):
     encoder = trainer.policy.actor.module.task_embedding
     words = trainer.policy.actor.state_dict()["module.task_embedding.words.weight"]
     saved = state["policy"]["module.task_embedding.words.weight"]
-    # reach's instruction in tar_rl.collectors.tasks: its words keep the source's rows, the others do not
+    # reach's instruction in tar_rl.collectors.metaworld.tasks: its words keep the source's rows, the others do not
     reach_words = set(encoder.word_ids[task_index("reach")][encoder.word_mask[task_index("reach")]].tolist())
     assert reach_words
     assert torch.equal(words[0], torch.zeros_like(words[0]))  # the padding word

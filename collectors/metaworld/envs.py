@@ -33,7 +33,7 @@ from torchrl.data import Unbounded
 from torchrl.envs import Compose, DoubleToFloat, GymWrapper, InitTracker, TensorDictPrimer, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-from tar_rl.collectors import tasks
+from tar_rl.collectors.metaworld import tasks
 
 __all__ = ["MaskedVectorEnv", "SuccessReader", "make_batched_env", "make_metaworld_env"]
 

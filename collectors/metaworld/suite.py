@@ -1,5 +1,5 @@
 """The MetaWorld suite (``data.suite=metaworld``, the default): scripted-expert demonstrations and the
-batched TorchRL evaluator over the v3 tasks (:mod:`tar_rl.collectors.tasks`, ``demos``, ``evaluate``)."""
+batched TorchRL evaluator over the v3 tasks (:mod:`tar_rl.collectors.metaworld.tasks`, ``demos``, ``evaluate``)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from collections.abc import Sequence
 
 from tar_rl.data import DemoDataset
 
+from ..suite import Suite
 from . import tasks as mw_tasks
+from .dataset import build_dataset, check_disjoint
 from .evaluate import MAX_HORIZON, RolloutPool, evaluate
-from .metaworld_data import build_dataset, check_disjoint
-from .suite import Suite
 
 __all__ = ["MetaWorldSuite"]
 

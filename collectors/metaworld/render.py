@@ -1,4 +1,4 @@
-"""Image observations: off-screen MuJoCo rendering of MetaWorld scenes (installed as ``tar_rl.collectors.render``).
+"""Image observations: off-screen MuJoCo rendering of MetaWorld scenes.
 
 ``PixelRenderer(size)`` renders an environment's current scene from a fixed camera to a
 ``[3, size, size]`` uint8 array (channels first, the layout the conv encoders read), with shadows

@@ -1,4 +1,4 @@
-"""Scripted-expert demonstrations on MetaWorld v3 (installed as ``tar_rl.collectors.demos``).
+"""Scripted-expert demonstrations on MetaWorld v3 (installed as ``tar_rl.collectors.metaworld.demos``).
 
 ``collect_task`` rolls MetaWorld's scripted expert out on the variations ``tasks.variation(task,
 seed, j)`` for ``j = 0, 1, 2, ...`` and keeps the episodes that succeed, stopping each episode at
@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tar_rl.collectors import tasks as _tasks
+from tar_rl.collectors.metaworld import tasks as _tasks
 from tar_rl.errors import children_ignore_sigint
 
 __all__ = ["ACTION_DIM", "HORIZON", "OBS_DIM", "TaskDemos", "collect", "collect_task", "default_max_attempts"]
@@ -68,7 +68,7 @@ class TaskDemos:
         env_steps: environment steps taken, rejected episodes included.
         seconds: wall time of the collection in the worker.
         pixels: ``[N, 3, S, S]`` uint8 images of ``observation`` (``collect_task(image_size=S)``,
-            see :mod:`tar_rl.collectors.render`), or ``None``.
+            see :mod:`tar_rl.collectors.metaworld.render`), or ``None``.
     """
 
     task: str
@@ -117,7 +117,7 @@ def _check_seed(seed) -> int:
 def _rollout(env, policy, buf: dict[str, np.ndarray], render=None) -> tuple[int, bool]:
     """One expert episode into the preallocated buffers; returns (length, succeeded).
 
-    With ``render`` (a :class:`~tar_rl.collectors.render.PixelRenderer`), ``buf["pix"][t]`` gets
+    With ``render`` (a :class:`~tar_rl.collectors.metaworld.render.PixelRenderer`), ``buf["pix"][t]`` gets
     the image of observation ``t``.
     """
     obs_buf, raw_buf, act_buf, rew_buf = buf["obs"], buf["raw"], buf["act"], buf["rew"]
@@ -160,7 +160,7 @@ def collect_task(
         seed: base seed of the variations.
         max_attempts: episodes to try at most; default ``3 * n_demos + 5``.
         image_size: ``S > 0`` also records ``[3, S, S]`` images of every observation (needs
-            off-screen rendering: :mod:`tar_rl.collectors.render`); 0: none.
+            off-screen rendering: :mod:`tar_rl.collectors.metaworld.render`); 0: none.
 
     Returns:
         A :class:`TaskDemos` with ``n_demos`` episodes.
@@ -194,7 +194,7 @@ def collect_task(
     }
     render = None
     if image_size:
-        from tar_rl.collectors.render import PixelRenderer
+        from tar_rl.collectors.metaworld.render import PixelRenderer
 
         render = PixelRenderer(image_size)
         buf["pix"] = np.empty((HORIZON, 3, image_size, image_size), np.uint8)
@@ -328,7 +328,7 @@ def collect(
     if isinstance(image_size, bool) or not isinstance(image_size, (int, np.integer)) or image_size < 0:
         raise ValueError(f"image_size must be a non-negative integer (0: no images), got {image_size!r}.")
     if image_size:
-        from tar_rl.collectors.render import headless_gl
+        from tar_rl.collectors.metaworld.render import headless_gl
 
         headless_gl()
         workers = max(workers, 1)

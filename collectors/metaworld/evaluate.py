@@ -47,12 +47,12 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors import tasks
-from tar_rl.collectors.envs import make_batched_env
+from tar_rl.collectors.metaworld import tasks
+from tar_rl.collectors.metaworld.envs import make_batched_env
+from tar_rl.collectors.suite import COLUMNS
 from tar_rl.errors import children_ignore_sigint
 
 __all__ = [
-    "COLUMNS",
     "MAX_HORIZON",
     "ExpertPolicy",
     "RolloutPool",
@@ -77,20 +77,6 @@ def default_envs_per_worker(rollouts: int, horizon: int) -> int:
     """The batch size that balances per-step overhead against env construction for a worker's shard."""
     best = math.sqrt(rollouts * horizon * _BATCH_STEP_OVERHEAD_S / _ENV_BUILD_S)
     return max(1, min(rollouts, max(_MIN_BATCH, min(_MAX_BATCH, round(best)))))
-
-
-COLUMNS = (
-    "task",
-    "task_id",
-    "group",
-    "variation_seed",
-    "variation_index",
-    "success",
-    "steps",
-    "rho",
-    "return",
-    "failure",
-)
 
 
 class ExpertPolicy(TensorDictModuleBase):
@@ -186,7 +172,7 @@ def evaluate(
             the ``count`` shards, concatenated and sorted by ``task_id`` and ``variation_index``,
             are the rows of the whole evaluation (each rollout depends only on its variation).
         image_size: ``S > 0``: the policy also reads ``pixels`` (``[N, 3, S, S]`` uint8), the
-            camera image of each slot's current observation (:mod:`tar_rl.collectors.render`).
+            camera image of each slot's current observation (:mod:`tar_rl.collectors.metaworld.render`).
             Rendering runs in worker processes (at least one) started with ``MUJOCO_GL=egl``
             unless it is set.
         pool: the :class:`RolloutPool` of the job's evaluations (its worker processes and idle envs
@@ -203,7 +189,7 @@ def evaluate(
     if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size < 0:
         raise ValueError(f"image_size must be a non-negative integer (0: no images), got {image_size!r}")
     if image_size:
-        from tar_rl.collectors.render import headless_gl
+        from tar_rl.collectors.metaworld.render import headless_gl
 
         headless_gl()  # before the worker processes start: MuJoCo reads it when imported
 
@@ -540,7 +526,7 @@ def _run_shard(policy, shard, seed, horizon, batch, envs: _EnvCache, progress, i
     pool = _EnvPool(shard, envs)
     render = None
     if image_size:
-        from tar_rl.collectors.render import PixelRenderer
+        from tar_rl.collectors.metaworld.render import PixelRenderer
 
         render = PixelRenderer(image_size)
     try:

@@ -8,7 +8,7 @@ checks is removed and built again.
 
 MetaWorld specifics of the stored steps: ``observation`` [39], ``action`` [4] (the expert action clipped
 to [-1, 1]; ``action_raw`` unclipped), ``("next", "terminated")`` on the success step that ends every
-kept episode, ``task_id`` the index in :data:`tar_rl.collectors.tasks.TASKS` (the 50 v3 names in
+kept episode, ``task_id`` the index in :data:`tar_rl.collectors.metaworld.tasks.TASKS` (the 50 v3 names in
 alphabetical order: ``task_names`` lists all of them, so ids are global), ``pixels`` rendered by
 :mod:`.render`. The metadata records every variation seed the experts tried (``variation_seeds``), which
 :func:`check_disjoint` compares with the evaluation's.
