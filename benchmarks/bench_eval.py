@@ -19,7 +19,7 @@ fix, for each rollout, the steps the raw side replays.
   per task per process (kept between rounds, as the evaluator keeps its envs), ``set_task`` +
   ``reset`` per rollout, then exactly the rollout's step count.
 * ``raw_interleaved``: the same bare loop, but with the evaluator's schedule: its batch size, its
-  shard order and its slot refills (``evaluate._interleave``, ``evaluate._Pending``), stepping the
+  shard order and its slot refills (``rollouts.interleave``, ``rollouts.Pending``), stepping the
   running envs of the batch in turn. Stepping several MuJoCo models in turn runs colder in the CPU
   caches than one env in a row, and a batch runs part-empty at the end of a shard; this side pays
   both, so ``eval / raw_interleaved`` is what the evaluator's own machinery (TorchRL env, policy
@@ -117,12 +117,12 @@ _RAW_IDLE: dict[str, list] = {}  # the interleaved raw side's envs per task, kep
 def raw_interleaved_shard(shard, variations=None, rng_seed=0, *, batch: int) -> int:
     """``raw_shard`` on the evaluator's schedule: ``batch`` slots stepped in turn, refilled as it refills them."""
     from tar_rl.collectors.metaworld import tasks
-    from tar_rl.collectors.metaworld.evaluate import _interleave, _Pending
+    from tar_rl.collectors.metaworld.rollouts import Pending, interleave
 
     tasks.add_variations(variations or {})
     rng = np.random.default_rng(rng_seed)
     length = {(task, k): steps for task, k, steps in shard}
-    pending = _Pending(_interleave([(task, k) for task, k, _ in shard]))
+    pending = Pending(interleave([(task, k) for task, k, _ in shard]))
 
     def start(i, task, k, env=None):
         if env is None:
@@ -350,12 +350,12 @@ def main(argv=None) -> pd.DataFrame:
     from common import git_commit
 
     from tar_rl.collectors.metaworld import tasks
-    from tar_rl.collectors.metaworld.evaluate import RolloutPool, _cpu_count
+    from tar_rl.collectors.metaworld.evaluate import RolloutPool, available_cores
 
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", message="The name target_actor_network_params")  # torchrl's BCLoss
     names = tasks.resolve_tasks(args.tasks)
-    workers = args.workers or _cpu_count()
+    workers = args.workers or available_cores()
     policy = trained_policy(names, args.demos, args.train_steps, args.cache)
     rows = []
     with RolloutPool() as pool:  # the evaluator's workers and envs, kept between rounds as in a training job

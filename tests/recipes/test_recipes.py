@@ -382,7 +382,7 @@ class _Crash(Exception):
 
 @pytest.mark.slow
 def test_a_runs_evaluations_share_one_pool_that_ends_with_the_run(tmp_path, data_root, monkeypatch):
-    from tar_rl.collectors import metaworld
+    from tar_rl.collectors.metaworld import suite as metaworld
 
     pools = []
     real = metaworld.evaluate
