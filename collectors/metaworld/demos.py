@@ -145,6 +145,22 @@ def _rollout(env, policy, buf: dict[str, np.ndarray], render=None) -> tuple[int,
     return HORIZON, False  # unreachable: MetaWorld truncates at step 500
 
 
+def _task_args(task, n_demos, seed, max_attempts) -> tuple[str, int, int, int]:
+    """``collect_task``'s arguments checked: one task name resolved, counts and seed as ints (``ValueError``)."""
+    if not isinstance(task, str):
+        raise ValueError(f"collect_task takes one task name (a str), got {task!r}.")
+    resolved = _tasks.resolve_tasks([task])  # raises listing the valid names
+    if len(resolved) != 1:
+        raise ValueError(f"collect_task takes one task name, got the group {task!r}: use collect() for groups.")
+    n_demos = _check_positive_int("n_demos", n_demos)
+    seed = _check_seed(seed)
+    max_attempts = default_max_attempts(n_demos) if max_attempts is None else max_attempts
+    max_attempts = _check_positive_int("max_attempts", max_attempts)
+    if max_attempts < n_demos:
+        raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
+    return resolved[0], n_demos, seed, max_attempts
+
+
 def collect_task(
     task: str, n_demos: int, seed: int = 0, max_attempts: int | None = None, image_size: int = 0
 ) -> TaskDemos:
@@ -170,19 +186,7 @@ def collect_task(
         RuntimeError: fewer than ``n_demos`` successes within ``max_attempts`` episodes, naming
             the task and the counts.
     """
-    if not isinstance(task, str):
-        raise ValueError(f"collect_task takes one task name (a str), got {task!r}.")
-    resolved = _tasks.resolve_tasks([task])  # raises listing the valid names
-    if len(resolved) != 1:
-        raise ValueError(f"collect_task takes one task name, got the group {task!r}: use collect() for groups.")
-    (task,) = resolved
-    n_demos = _check_positive_int("n_demos", n_demos)
-    seed = _check_seed(seed)
-    max_attempts = default_max_attempts(n_demos) if max_attempts is None else max_attempts
-    max_attempts = _check_positive_int("max_attempts", max_attempts)
-    if max_attempts < n_demos:
-        raise ValueError(f"max_attempts ({max_attempts}) must be >= n_demos ({n_demos}).")
-
+    task, n_demos, seed, max_attempts = _task_args(task, n_demos, seed, max_attempts)
     start = time.perf_counter()
     env = _tasks.make_env(task)
     policy = _tasks.expert(task)
