@@ -55,19 +55,14 @@ import numpy as np
 from tar_rl.io import write_csv_atomic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import git_commit, interleaved, median_iqr
+from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "data.csv"
 COLUMNS = [
     "section",
     "variant",
-    "median",
-    "iqr",
-    "unit",
-    "ratio_to_baseline",
-    "baseline",
-    "n",
+    *SUMMARY_COLUMNS,
     "workers",
     "tasks",
     "torch",

@@ -58,7 +58,7 @@ from tar_rl.objectives import TARLoss, compiles_weights
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import git_commit, interleaved, median_iqr
+from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "heads.csv"
@@ -73,12 +73,7 @@ COLUMNS = [
     "section",
     "head",
     "variant",
-    "median",
-    "iqr",
-    "unit",
-    "ratio_to_baseline",
-    "baseline",
-    "n",
+    *SUMMARY_COLUMNS,
     "batch",
     "device",
     "torch",

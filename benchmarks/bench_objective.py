@@ -50,7 +50,7 @@ from tar_rl.io import write_csv_atomic
 from tar_rl.objectives import TARLoss, tar_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import git_commit, interleaved, median_iqr
+from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "objective.csv"
@@ -67,12 +67,7 @@ WEIGHT_VARIANTS = ("masked_mean", "tar_paper", "tar_exact", *COMPILED)
 COLUMNS = [
     "section",
     "variant",
-    "median",
-    "iqr",
-    "unit",
-    "ratio_to_baseline",
-    "baseline",
-    "n",
+    *SUMMARY_COLUMNS,
     "torch",
     "threads",
     "commit",

@@ -10,6 +10,9 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
+# The columns of one timing summary in every benchmark CSV: median and IQR of the samples, their unit, the ratio
+# of the median to the baseline variant's (side by side in one run), the baseline's name and the sample count.
+SUMMARY_COLUMNS = ("median", "iqr", "unit", "ratio_to_baseline", "baseline", "n")
 
 
 def git_commit() -> str:
