@@ -46,7 +46,6 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.collectors.suite import COLUMNS, Suite
 
 __all__ = [
@@ -451,8 +450,6 @@ class DMControlSuite(Suite):
     def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         return build_dataset(data.root, tasks, n_demos, seed, data.chunk_horizon, data.history, verbose=progress)
 
-    def evaluate(
-        self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
-    ):
+    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
         # (``pool`` unused: the rollouts run in this process)
         return evaluate(actor, tasks, ev.rollouts, seed=ev.seed, horizon=ev.horizon, shard=shard)

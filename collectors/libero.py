@@ -57,7 +57,6 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.collectors.suite import COLUMNS, Suite
 from tar_rl.data import load_dataset
 
@@ -549,9 +548,7 @@ class LiberoSuite(Suite):
     def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         raise ValueError(NO_COLLECTION)
 
-    def evaluate(
-        self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
-    ):
+    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
         # (``pool`` unused: the rollouts run in this process)
         metadata = load_dataset(data.path).metadata
         return evaluate(

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
-from typing import TYPE_CHECKING
 
 from tar_rl.data import DemoDataset
-
-if TYPE_CHECKING:
-    from .metaworld.evaluate import RolloutPool
 
 __all__ = ["COLUMNS", "Suite"]
 
@@ -87,12 +84,14 @@ class Suite:
         """``n_demos`` demonstrations per task collected from ``seed`` (collected once, cached under ``data.root``)."""
         raise ValueError(f"the {self.name} suite collects no demonstrations")
 
-    def evaluate(
-        self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
-    ):
+    def evaluation_pool(self) -> contextlib.AbstractContextManager:
+        """What the evaluations of one job share (worker processes, idle environments), as a context manager the
+        job leaves when its evaluations are over; nothing for a suite whose rollouts run in the calling process."""
+        return contextlib.nullcontext()
+
+    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
         """One row per rollout (``tar_rl.collectors.suite.COLUMNS``) of ``eval.rollouts`` per task.
 
-        ``pool``: the job's ``tar_rl.collectors.metaworld.evaluate.RolloutPool`` (worker processes and envs kept
-        between its evaluations), for a suite that runs its rollouts there.
+        ``pool``: the job's :meth:`evaluation_pool`.
         """
         raise NotImplementedError

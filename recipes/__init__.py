@@ -6,7 +6,14 @@ work), ``builders`` (the ``make_*`` builders), ``offline_bc`` (the ``Trainer`` a
 (``tar-rl eval``), ``post_training`` (``init.from``), ``diagnose`` (fit diagnostics), ``errors``.
 """
 
-from .builders import make_dataset, make_evaluator, make_objective, make_optimizer, make_policy
+from .builders import (
+    make_dataset,
+    make_evaluation_pool,
+    make_evaluator,
+    make_objective,
+    make_optimizer,
+    make_policy,
+)
 from .errors import ConfigError, TrainingError
 from .evaluate import evaluate_checkpoint, policy_from_checkpoint
 from .offline_bc import Trainer, hydra_main, train
@@ -22,6 +29,7 @@ __all__ = [
     "hydra_main",
     "identity",
     "make_dataset",
+    "make_evaluation_pool",
     "make_evaluator",
     "make_objective",
     "make_optimizer",

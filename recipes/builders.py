@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -10,7 +11,6 @@ import pandas as pd
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.collectors.suites import SUITES
 from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.objectives import MixSchedule, TARLoss
@@ -22,6 +22,7 @@ from .errors import ConfigError
 __all__ = [
     "given_dataset",
     "make_dataset",
+    "make_evaluation_pool",
     "make_evaluator",
     "make_objective",
     "make_optimizer",
@@ -112,7 +113,7 @@ def make_evaluator(
     ev: EvalConfig,
     data: DataConfig,
     tasks: Sequence[str],
-    pool: RolloutPool,
+    pool,
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
     suite: str | None = None,
@@ -120,10 +121,16 @@ def make_evaluator(
     """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy, with the
     ``eval`` section's settings.
 
-    ``validate(config).suite`` names the suite of a ``data.path`` dataset. The evaluations run on
-    ``pool``, which the caller closes when its evaluations are over. ``shard=(rank, world)`` runs that
-    share of the rollouts on this process's share of the cores. A MetaWorld policy reading ``pixels``
-    gets camera images of ``data.image_size``.
+    ``validate(config).suite`` names the suite of a ``data.path`` dataset. The evaluations run on ``pool``
+    (:func:`make_evaluation_pool`'s), which the caller leaves when its evaluations are over.
+    ``shard=(rank, world)`` runs that share of the rollouts on this process's share of the cores. A MetaWorld
+    policy reading ``pixels`` gets camera images of ``data.image_size``.
     """
     run_suite = SUITES[suite or data.suite]
     return lambda actor: run_suite.evaluate(ev, data, actor, list(tasks), progress, shard, pool)
+
+
+def make_evaluation_pool(suite: str) -> contextlib.AbstractContextManager:
+    """What the evaluations of a job in ``suite`` share (e.g. MetaWorld's worker processes), as a context manager
+    the job leaves at its end; nothing for a suite name outside the registry (a dataset no simulator here has)."""
+    return SUITES[suite].evaluation_pool() if suite in SUITES.names() else contextlib.nullcontext()

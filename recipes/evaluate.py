@@ -8,7 +8,6 @@ from pathlib import Path
 import pandas as pd
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.io import write_csv_atomic
 from tar_rl.metrics import summarize
 from tar_rl.policies import DataInfo
@@ -17,7 +16,7 @@ from tar_rl.runs import (
     print_table,
 )
 
-from .builders import make_evaluator, make_policy
+from .builders import make_evaluation_pool, make_evaluator, make_policy
 from .config import typed_config
 from .rundir import with_defaults
 from .validate import validate
@@ -72,7 +71,7 @@ def evaluate_checkpoint(
     job = validate(config)
     ev = job.config.eval
     actor = policy_from_checkpoint(state, path)
-    with RolloutPool() as pool:
+    with make_evaluation_pool(job.suite) as pool:
         rollouts_df = make_evaluator(ev, job.config.data, job.eval_tasks, pool, progress=progress, suite=job.suite)(
             actor
         )

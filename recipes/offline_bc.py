@@ -42,7 +42,6 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed
-from tar_rl.collectors.metaworld.evaluate import RolloutPool
 from tar_rl.collectors.suites import SUITES
 from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
 from tar_rl.io import atomic_write, write_json_atomic
@@ -62,7 +61,15 @@ from tar_rl.runs import (
 )
 
 from . import diagnose, post_training
-from .builders import make_dataset, make_evaluator, make_objective, make_optimizer, make_policy, torch_device
+from .builders import (
+    make_dataset,
+    make_evaluation_pool,
+    make_evaluator,
+    make_objective,
+    make_optimizer,
+    make_policy,
+    torch_device,
+)
 from .config import CONFIG_NAME, TrainConfig, config_dict, register_configs
 from .errors import ConfigError, TrainingError
 from .record import demo_episodes, record_weights
@@ -145,7 +152,7 @@ class Trainer:
         )
         share = cfg.data.batch_segments // dist.world
         self.rows = slice(dist.rank * share, (dist.rank + 1) * share)
-        self.pool = RolloutPool()  # the evaluations' worker processes, kept until the end of run()
+        self.pool = make_evaluation_pool(job.suite)  # e.g. the evaluations' worker processes, kept until run() ends
         self.evaluator = None  # eval.rollouts=0: training only
         if cfg.eval.rollouts:
             shard = (dist.rank, dist.world)

@@ -56,6 +56,9 @@ class MetaWorldSuite(Suite):
             progress=progress,
         )
 
+    def evaluation_pool(self) -> RolloutPool:
+        return RolloutPool()
+
     def evaluate(
         self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
     ):
