@@ -11,13 +11,16 @@ random order) so that machine noise hits all variants alike; medians and IQRs ar
   already in memory, backward, ``AdamW.step()``, ``zero_grad()``) of the same 3 x 256 ReLU MLP
   policy, for ``bc_mean`` (torchrl's ``BCLoss`` with its mean reduction, the TorchRL
   baseline), ``uniform`` (``TARLoss(inner, "uniform")``), ``tar`` (``TARLoss(inner, "tar")``,
-  paper cap) and ``tar_exact`` (``cap="exact"``). Every variant trains its own deep copy of one
-  seeded network with its own optimizer. Besides the ratio of medians, the per-repetition
-  ratio ``time_variant[r] / time_baseline[r]`` (both timed in the same round) is reported as
-  ``train_step_paired``: it is less noisy.
+  paper cap), ``tar_exact`` (``cap="exact"``) and the baselines from the literature ``tilted``,
+  ``truncate``, ``keyframe``, ``focal`` (``TARLoss(inner, name)``, default parameters). Every
+  variant trains its own deep copy of one seeded network with its own optimizer. Besides the
+  ratio of medians, the per-repetition ratio ``time_variant[r] / time_baseline[r]`` (both timed
+  in the same round) is reported as ``train_step_paired``: it is less noisy.
 * ``weighting``: the weighting function alone on ``[256, 16]`` float32 losses: a plain masked
   mean (the baseline), ``tar_weights`` with the paper and the exact cap, eager and under
-  ``torch.compile`` (inductor). Each timing sample is the mean of ``--calls`` calls.
+  ``torch.compile`` (inductor), and the baselines' weight functions (``tilted_weights``,
+  ``truncate_weights``, ``keyframe_weights``, ``focal_weights``), eager. Each timing sample is
+  the mean of ``--calls`` calls.
 
 Output: a table on stdout and one tidy CSV (default ``benchmarks/results/objective.csv``), one
 row per (section, variant, baseline) with columns ``section, variant, median, iqr, unit,
@@ -47,7 +50,14 @@ from torch import Tensor
 from torchrl.objectives import BCLoss
 
 from tar_rl.io import write_csv_atomic
-from tar_rl.objectives import TARLoss, tar_weights
+from tar_rl.objectives import (
+    TARLoss,
+    focal_weights,
+    keyframe_weights,
+    tar_weights,
+    tilted_weights,
+    truncate_weights,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
 from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
@@ -59,11 +69,12 @@ BATCH, SLICE_LEN = 256, 16
 OBS_DIM, N_TASKS, ACTION_DIM, HIDDEN, DEPTH = 39, 10, 4, 256, 3
 PAD_SEGMENT_FRACTION = 0.25  # segments that end early; with lengths in [4, 15] ~10% of steps are padding
 
-STEP_VARIANTS = ("bc_mean", "uniform", "tar", "tar_exact")
+BASELINES = ("tilted", "truncate", "keyframe", "focal")  # the weightings from the literature, by registry name
+STEP_VARIANTS = ("bc_mean", "uniform", "tar", "tar_exact", *BASELINES)
 STEP_BASELINES = ("uniform", "bc_mean")
 WEIGHT_BASELINE = "masked_mean"
 COMPILED = {"tar_paper_compiled": "tar_paper", "tar_exact_compiled": "tar_exact"}
-WEIGHT_VARIANTS = ("masked_mean", "tar_paper", "tar_exact", *COMPILED)
+WEIGHT_VARIANTS = ("masked_mean", "tar_paper", "tar_exact", *COMPILED, *BASELINES)
 COLUMNS = [
     "section",
     "variant",
@@ -128,10 +139,8 @@ def make_step(variant: str, net: torch.nn.Module, batch: TensorDict) -> Callable
             loss_module, key = BCLoss(actor, loss_function="mse"), "loss_bc"
         else:
             inner = BCLoss(actor, loss_function="mse", reduction="none")
-            if variant == "uniform":
-                loss_module = TARLoss(inner, "uniform")
-            elif variant == "tar":
-                loss_module = TARLoss(inner, "tar")
+            if variant in ("uniform", "tar", *BASELINES):
+                loss_module = TARLoss(inner, variant)
             elif variant == "tar_exact":
                 loss_module = TARLoss(inner, "tar", cap="exact")
             else:
@@ -246,7 +255,15 @@ def bench_weighting(reps: int, calls: int, seed: int) -> tuple[list[dict], list[
     valid = batch.get(("collector", "mask"))
     g = torch.Generator().manual_seed(seed + 1)
     losses = torch.rand(BATCH, SLICE_LEN, generator=g, dtype=torch.float32).square()
-    eager = {"masked_mean": masked_mean, "tar_paper": tar_paper, "tar_exact": tar_exact}
+    eager = {
+        "masked_mean": masked_mean,
+        "tar_paper": tar_paper,
+        "tar_exact": tar_exact,
+        "tilted": tilted_weights,
+        "truncate": truncate_weights,
+        "keyframe": keyframe_weights,
+        "focal": focal_weights,
+    }
     fns: dict[str, Callable] = dict(eager)
     notes = []
     with warnings.catch_warnings():

@@ -1,19 +1,33 @@
-"""Objectives: TAR's weightings, its schedule and the ``TARLoss`` LossModule.
+"""Objectives: TAR's weightings, the baselines from the literature, TAR's schedule and the ``TARLoss`` LossModule.
 
 Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.toml``).
 """
 
+from .baselines import (
+    COUNT_TOLERANCE,
+    focal_weights,
+    keyframe_count,
+    keyframe_weights,
+    tilted_weights,
+    truncate_count,
+    truncate_weights,
+)
 from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
 from .supervision import perturb_target
 from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
 from .weighting import (
     CAP_MODES,
     DEFAULT_EPS,
+    DEFAULT_FOCAL_BETA,
     DEFAULT_GAMMA,
+    DEFAULT_KEYFRAME_FACTOR,
+    DEFAULT_KEYFRAME_FRACTION,
+    DEFAULT_TILT,
+    DEFAULT_TRUNCATE_FRACTION,
     DEFAULT_W_MAX,
     WEIGHTINGS,
-    TARParams,
     Weighting,
+    WeightingParams,
     check_step_losses,
     get_weighting,
     invert_weights,
@@ -28,20 +42,29 @@ from .weighting import (
 __all__ = [
     "CAP_MODES",
     "COMPILE_MODES",
+    "COUNT_TOLERANCE",
     "DEFAULT_EPS",
+    "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
+    "DEFAULT_KEYFRAME_FACTOR",
+    "DEFAULT_KEYFRAME_FRACTION",
+    "DEFAULT_TILT",
+    "DEFAULT_TRUNCATE_FRACTION",
     "DEFAULT_W_MAX",
     "NONFINITE_MODES",
     "SCHEDULE_SHAPES",
     "WEIGHTINGS",
     "MixSchedule",
     "TARLoss",
-    "TARParams",
     "Weighting",
+    "WeightingParams",
     "check_step_losses",
     "compiles_weights",
+    "focal_weights",
     "get_weighting",
     "invert_weights",
+    "keyframe_count",
+    "keyframe_weights",
     "mix_at",
     "perturb_mask",
     "perturb_target",
@@ -49,6 +72,9 @@ __all__ = [
     "segment_mean",
     "shuffle_weights",
     "tar_weights",
+    "tilted_weights",
+    "truncate_count",
+    "truncate_weights",
     "uniform_weights",
     "window_weights",
 ]

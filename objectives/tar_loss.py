@@ -4,8 +4,8 @@ The inner objective (any ``LossModule`` built with ``reduction="none"``, e.g. to
 ``BCLoss``) computes unreduced per-step losses on a ``[B, L]`` TensorDict of segments.
 ``TARLoss`` reduces any trailing event dimensions (action dims, chunk horizon) to ``[B, L]``,
 weights the steps of each segment with a registered weighting (``"tar"`` by default, the
-uniform mean and the paper's controls by name) and returns the segment loss of Eq. 2,
-averaged over the segments that have at least one valid step.
+uniform mean, the paper's controls and the baselines from the literature by name) and returns
+the segment loss of Eq. 2, averaged over the segments that have at least one valid step.
 """
 
 from __future__ import annotations
@@ -23,9 +23,14 @@ from .schedule import MixSchedule
 from .supervision import perturb_target
 from .weighting import (
     DEFAULT_EPS,
+    DEFAULT_FOCAL_BETA,
     DEFAULT_GAMMA,
+    DEFAULT_KEYFRAME_FACTOR,
+    DEFAULT_KEYFRAME_FRACTION,
+    DEFAULT_TILT,
+    DEFAULT_TRUNCATE_FRACTION,
     DEFAULT_W_MAX,
-    TARParams,
+    WeightingParams,
     get_weighting,
     perturb_mask,
 )
@@ -79,13 +84,21 @@ class TARLoss(LossModule):
             ``loss_*`` entry of shape ``[B, L, ...]`` (the input's batch shape, then any event
             dims); other ``loss_*`` entries must be scalars and are added unweighted.
         weighting (str): a name from :data:`tar_rl.objectives.WEIGHTINGS`: ``"tar"`` (default),
-            ``"uniform"`` (Eq. 1), or a control: ``"shuffle"``, ``"random"``, ``"invert"``,
-            ``"perturb_high"``, ``"perturb_low"``.
+            ``"uniform"`` (Eq. 1), a control: ``"shuffle"``, ``"random"``, ``"invert"``,
+            ``"perturb_high"``, ``"perturb_low"``, or a baseline from the literature
+            (:mod:`~tar_rl.objectives.baselines`): ``"tilted"``, ``"truncate"``, ``"keyframe"``,
+            ``"focal"``.
 
     Keyword Args:
-        gamma, w_max, eps, cap: TAR's hyper-parameters, see :func:`tar_rl.tar_weights`.
-        schedule (MixSchedule): when TAR (and every control) is mixed in; default: fully on
-            from the first step. Before ``schedule.start`` every weighting is the uniform mean.
+        gamma, w_max, eps, cap: TAR's hyper-parameters, see :func:`tar_rl.tar_weights`
+            (``focal`` also caps at ``w_max``, exactly; it needs ``w_max >= 1``).
+        tilt: ``t`` of ``tilted`` (:func:`~tar_rl.objectives.tilted_weights`), ``> 0``; default ``1.0``.
+        truncate_fraction: ``q`` of ``truncate``, in ``[0, 1)``; default ``0.1``.
+        keyframe_fraction, keyframe_factor: ``f`` in ``(0, 1)`` (default ``0.3``) and ``K >= 1``
+            (default ``5.0``) of ``keyframe``.
+        focal_beta: ``beta`` of ``focal``, ``>= 0``; default ``1.0``.
+        schedule (MixSchedule): when TAR (and every other weighting) is mixed in; default: fully
+            on from the first step. Before ``schedule.start`` every weighting is the uniform mean.
         loss_key (NestedKey): the inner output holding the per-step loss; default: its only
             ``loss_*`` entry.
         perturb_fraction (float): for ``perturb_*``, the fraction of each segment's valid steps
@@ -99,8 +112,8 @@ class TARLoss(LossModule):
         auto_step (bool): advance the schedule by one on every forward pass made in training
             mode with gradients enabled (default). Set ``False`` with gradient accumulation and
             call :meth:`advance` once per optimiser step instead.
-        compile_weights (str): run the weighting (``tar``, ``invert``) through ``torch.compile``:
-            ``"auto"`` (default) on CUDA when triton is available, ``"always"``, ``"never"``.
+        compile_weights (str): run the weighting (``tar``, ``invert``, the baselines) through
+            ``torch.compile``: ``"auto"`` (default) on CUDA when triton is available, ``"always"``, ``"never"``.
             On a GPU the weighting of a ``[B, L]`` batch is some thirty tiny kernels, whose
             launches cost about 0.5 ms a step; compiled, they fuse into a few. The compiled
             weights equal the eager ones up to float rounding. Uniform and the stochastic
@@ -172,6 +185,11 @@ class TARLoss(LossModule):
         w_max: float = DEFAULT_W_MAX,
         eps: float = DEFAULT_EPS,
         cap: str = "paper",
+        tilt: float = DEFAULT_TILT,
+        truncate_fraction: float = DEFAULT_TRUNCATE_FRACTION,
+        keyframe_fraction: float = DEFAULT_KEYFRAME_FRACTION,
+        keyframe_factor: float = DEFAULT_KEYFRAME_FACTOR,
+        focal_beta: float = DEFAULT_FOCAL_BETA,
         schedule: MixSchedule | None = None,
         loss_key: NestedKey | None = None,
         perturb_fraction: float = 0.25,
@@ -204,7 +222,19 @@ class TARLoss(LossModule):
         super().__init__()
         self.inner = inner
         self.weighting = get_weighting(weighting)
-        self.tar_params = TARParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
+        self.weighting_params = WeightingParams(
+            gamma=gamma,
+            w_max=w_max,
+            eps=eps,
+            cap=cap,
+            tilt=tilt,
+            truncate_fraction=truncate_fraction,
+            keyframe_fraction=keyframe_fraction,
+            keyframe_factor=keyframe_factor,
+            focal_beta=focal_beta,
+        )
+        if self.weighting.check is not None:
+            self.weighting.check(self.weighting_params)
         self.schedule = schedule
         self.loss_key = loss_key
         self.perturb_fraction = float(perturb_fraction)
@@ -291,7 +321,7 @@ class TARLoss(LossModule):
         losses = self._step_losses(out, key, tensordict)
         # The weights are stop-gradient (Eq. 3): the weighting sees detached losses.
         scored = self._scored(losses.detach(), valid)
-        weights = self._weight_function(losses.device)(scored, valid, self.tar_params, mix, generator)
+        weights = self._weight_function(losses.device)(scored, valid, self.weighting_params, mix, generator)
         loss = segment_mean(losses, weights, valid)
         for name, value in self._extra_losses(out, key).items():
             loss = loss + value

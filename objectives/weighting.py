@@ -1,5 +1,8 @@
 """Per-step weightings of segment losses: TAR (paper Eqs. 3-8) and its control variants.
 
+The baselines from the literature (tilted, truncate, keyframe, focal) live in
+:mod:`~tar_rl.objectives.baselines` and share this module's conventions, parameters and registry.
+
 Every function here is pure: it reads ``losses`` and ``valid`` and returns a new tensor of
 weights. Nothing is differentiated through the weights (the losses are detached first, the
 paper's stop-gradient of Eq. 3).
@@ -33,11 +36,16 @@ from tar_rl.registry import Registry
 __all__ = [
     "CAP_MODES",
     "DEFAULT_EPS",
+    "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
+    "DEFAULT_KEYFRAME_FACTOR",
+    "DEFAULT_KEYFRAME_FRACTION",
+    "DEFAULT_TILT",
+    "DEFAULT_TRUNCATE_FRACTION",
     "DEFAULT_W_MAX",
     "WEIGHTINGS",
-    "TARParams",
     "Weighting",
+    "WeightingParams",
     "check_step_losses",
     "get_weighting",
     "invert_weights",
@@ -58,16 +66,34 @@ DEFAULT_W_MAX = 3.0
 #: losses of a trained policy are ~1e-3..1e-1 with spreads of the same order, so 1e-8 leaves
 #: the z-scores untouched there and only matters when a segment's losses are all equal.
 DEFAULT_EPS = 1e-8
+#: Tilt ``t`` of the ``tilted`` baseline (:func:`~tar_rl.objectives.baselines.tilted_weights`).
+DEFAULT_TILT = 1.0
+#: Fraction ``q`` of a segment's valid steps that the ``truncate`` baseline drops.
+DEFAULT_TRUNCATE_FRACTION = 0.1
+#: Fraction ``f`` of a segment's valid steps that the ``keyframe`` baseline up-weights.
+DEFAULT_KEYFRAME_FRACTION = 0.3
+#: How many times the weight of the other steps the ``keyframe`` baseline gives its selected steps.
+DEFAULT_KEYFRAME_FACTOR = 5.0
+#: Exponent ``beta`` of the ``focal`` baseline.
+DEFAULT_FOCAL_BETA = 1.0
 
 CapMode = Literal["paper", "exact"]
 CAP_MODES: tuple[str, ...] = ("paper", "exact")
 
-_HALF = (torch.float16, torch.bfloat16)
+#: Dtypes weighted in float32, the weights cast back.
+HALF_DTYPES = (torch.float16, torch.bfloat16)
+
+
+def _finite_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 @dataclass(frozen=True)
-class TARParams:
-    """The hyper-parameters of TAR's weight construction, checked once when built.
+class WeightingParams:
+    """The hyper-parameters of every registered weighting, checked once when built.
+
+    TAR and its controls read ``gamma``, ``w_max``, ``eps`` and ``cap``; each baseline of
+    :mod:`~tar_rl.objectives.baselines` reads its own fields (``focal`` also ``w_max``).
 
     Attributes:
         gamma: softmax temperature on the z-scores (Eq. 6), ``> 0``.
@@ -77,12 +103,22 @@ class TARParams:
         cap: ``"paper"`` clips once and renormalises (Eq. 8 as printed: after it a weight may
             end above ``w_max``); ``"exact"`` finds the unit-mean weights
             ``min(c * w, w_max)`` for which the cap holds exactly.
+        tilt: ``t`` of ``tilted``, a finite number ``> 0``. Default ``1.0``.
+        truncate_fraction: ``q`` of ``truncate``, in ``[0, 1)``. Default ``0.1``.
+        keyframe_fraction: ``f`` of ``keyframe``, in ``(0, 1)``. Default ``0.3``.
+        keyframe_factor: ``K`` of ``keyframe``, a finite number ``>= 1``. Default ``5.0``.
+        focal_beta: ``beta`` of ``focal``, a finite number ``>= 0``. Default ``1.0``.
     """
 
     gamma: float = DEFAULT_GAMMA
     w_max: float = DEFAULT_W_MAX
     eps: float = DEFAULT_EPS
     cap: CapMode = "paper"
+    tilt: float = DEFAULT_TILT
+    truncate_fraction: float = DEFAULT_TRUNCATE_FRACTION
+    keyframe_fraction: float = DEFAULT_KEYFRAME_FRACTION
+    keyframe_factor: float = DEFAULT_KEYFRAME_FACTOR
+    focal_beta: float = DEFAULT_FOCAL_BETA
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gamma, (int, float)) and math.isfinite(self.gamma) and self.gamma > 0):
@@ -97,6 +133,16 @@ class TARParams:
             raise ValueError(
                 f"cap='exact' needs w_max >= 1 (weights of mean 1 cannot all be below 1), got {self.w_max!r}."
             )
+        for name, ok, rule in (
+            ("tilt", lambda v: v > 0, "a finite number > 0"),
+            ("truncate_fraction", lambda v: 0 <= v < 1, "a number in [0, 1)"),
+            ("keyframe_fraction", lambda v: 0 < v < 1, "a number in (0, 1)"),
+            ("keyframe_factor", lambda v: v >= 1, "a finite number >= 1"),
+            ("focal_beta", lambda v: v >= 0, "a finite number >= 0"),
+        ):
+            value = getattr(self, name)
+            if not (_finite_number(value) and ok(value)):
+                raise ValueError(f"{name} must be {rule}, got {value!r}.")
 
 
 def check_step_losses(losses: Tensor, valid: Tensor) -> None:
@@ -134,7 +180,8 @@ def check_step_losses(losses: Tensor, valid: Tensor) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# Building blocks of Eqs. 4-8. Internal: they assume checked inputs and detached losses.
+# Building blocks of Eqs. 4-8, shared with the baselines (``baselines.py``). They assume checked
+# inputs and detached losses; the package does not export them.
 # ---------------------------------------------------------------------------------------------
 
 
@@ -146,7 +193,7 @@ def _zscores(x: Tensor, m: Tensor, count: Tensor, eps: float) -> Tensor:
     return dev / (sigma + eps)
 
 
-def _unit_mean_softmax(scores: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, gamma: float) -> Tensor:
+def unit_mean_softmax(scores: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, gamma: float) -> Tensor:
     """Eqs. 6-7: masked softmax of ``gamma * scores`` times the number of valid steps."""
     # The lowest finite value (not -inf) keeps a segment without valid steps finite: its
     # softmax is uniform and the mask then zeroes it.
@@ -163,7 +210,7 @@ def _cap_paper(w: Tensor, m: Tensor, n_valid: Tensor, w_max: float) -> Tensor:
     return clipped * (n_valid / total.clamp_min(torch.finfo(w.dtype).tiny)) * m
 
 
-def _cap_exact(w: Tensor, m: Tensor, n_valid: Tensor, w_max: float) -> Tensor:
+def cap_exact(w: Tensor, m: Tensor, n_valid: Tensor, w_max: float) -> Tensor:
     """Unit-mean weights ``min(c * w, w_max)`` with the cap holding exactly (``w_max >= 1``).
 
     Water-filling: with the valid weights sorted in decreasing order ``v_0 >= v_1 >= ...``,
@@ -195,19 +242,29 @@ def _cap_exact(w: Tensor, m: Tensor, n_valid: Tensor, w_max: float) -> Tensor:
     return torch.where(found, capped, fallback) * m
 
 
-def _weights_from_scores(scores_input: Tensor, valid: Tensor, params: TARParams, mix: float | Tensor) -> Tensor:
+def mix_uniform(w: Tensor, m: Tensor, mix: float | Tensor) -> Tensor:
+    """The schedule's blend ``(1 - mix) * uniform + mix * w`` (Sec. III-B), for every weighting.
+
+    ``m`` is the float mask of valid steps (the uniform weights); ``mix == 1`` returns ``w``.
+    A weighting with a cap applies it after the blend, as TAR does.
+    """
+    if isinstance(mix, (int, float)) and mix == 1:
+        return w
+    return (1 - mix) * m + mix * w
+
+
+def _weights_from_scores(scores_input: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor) -> Tensor:
     """Eqs. 4-8 plus the schedule's mixing, on already detached and checked inputs."""
     dtype = scores_input.dtype
-    x = scores_input.float() if dtype in _HALF else scores_input
+    x = scores_input.float() if dtype in HALF_DTYPES else scores_input
     m = valid.to(x.dtype)
     x = torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device))  # padding may hold NaN
     n_valid = m.sum(-1, keepdim=True)
     count = n_valid.clamp_min(1)
     scores = _zscores(x, m, count, params.eps)
-    w = _unit_mean_softmax(scores, valid, m, n_valid, params.gamma)
-    if not (isinstance(mix, (int, float)) and mix == 1):
-        w = (1 - mix) * m + mix * w  # the schedule's alpha, applied before the cap (Sec. III-B)
-    cap = _cap_exact if params.cap == "exact" else _cap_paper
+    w = unit_mean_softmax(scores, valid, m, n_valid, params.gamma)
+    w = mix_uniform(w, m, mix)  # the schedule's alpha, applied before the cap (Sec. III-B)
+    cap = cap_exact if params.cap == "exact" else _cap_paper
     w = cap(w, m, n_valid, params.w_max)
     return w.to(dtype)
 
@@ -271,7 +328,7 @@ def tar_weights(
         >>> w[0, 3].item(), round(w[0, :3].mean().item(), 6)
         (0.0, 1.0)
     """
-    params = TARParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
+    params = WeightingParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
     check_step_losses(losses, valid)
     return _weights_from_scores(losses.detach(), valid, params, mix)
 
@@ -322,7 +379,7 @@ def invert_weights(losses: Tensor, valid: Tensor, *, mix: float | Tensor = 1.0, 
     same temperature, unit mean, mixing and cap (``**params`` as in :func:`tar_weights`).
     """
     check_step_losses(losses, valid)
-    return _weights_from_scores(-losses.detach(), valid, TARParams(**params), mix)
+    return _weights_from_scores(-losses.detach(), valid, WeightingParams(**params), mix)
 
 
 def random_weights(
@@ -340,7 +397,7 @@ def random_weights(
     """
     check_step_losses(losses, valid)
     scores = _rand_like(losses, generator, normal=True).to(losses.dtype)
-    return _weights_from_scores(scores, valid, TARParams(**params), mix)
+    return _weights_from_scores(scores, valid, WeightingParams(**params), mix)
 
 
 def _random_order(valid: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -393,7 +450,7 @@ def perturb_mask(
     if isinstance(fraction, (int, float)) and not 0 <= fraction <= 1:
         raise ValueError(f"fraction must lie in [0, 1], got {fraction!r}.")
     x = losses.detach()
-    x = x.float() if x.dtype in _HALF else x  # rank in the losses' own precision (float64 stays)
+    x = x.float() if x.dtype in HALF_DTYPES else x  # rank in the losses' own precision (float64 stays)
     x = -x if which == "high" else x
     x = x.masked_fill(~valid, math.inf)
     # Random tie-breaking: visit the steps in a random order, then sort stably by loss.
@@ -421,16 +478,19 @@ class Weighting:
             uniformly; ``None`` otherwise.
         stochastic: whether the weighting draws random numbers (from ``generator``).
         summary: one line for listings and error messages.
+        check: ``(params) -> None``, raises a ``ValueError`` naming the parameter when
+            ``params`` (valid in general) do not suit this weighting; ``None``: all do.
     """
 
     name: str
-    weights: Callable[[Tensor, Tensor, TARParams, float | Tensor, torch.Generator | None], Tensor]
+    weights: Callable[[Tensor, Tensor, WeightingParams, float | Tensor, torch.Generator | None], Tensor]
     perturb: Literal["high", "low"] | None = None
     stochastic: bool = False
     summary: str = ""
+    check: Callable[[WeightingParams], None] | None = None
 
 
-def _param_kwargs(params: TARParams) -> dict:
+def _param_kwargs(params: WeightingParams) -> dict:
     return {"gamma": params.gamma, "w_max": params.w_max, "eps": params.eps, "cap": params.cap}
 
 

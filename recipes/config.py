@@ -5,7 +5,8 @@ Every node is a dataclass: Hydra composes them in struct mode, so an unknown key
 before anything runs. Config groups (``group=option`` on the command line):
 
 * ``objective``: one option per registered weighting (``tar_rl.WEIGHTINGS``: ``uniform``, ``tar``,
-  ``shuffle``, ``random``, ``invert``, ``perturb_high``, ``perturb_low``), all of type
+  ``shuffle``, ``random``, ``invert``, ``perturb_high``, ``perturb_low``, and the baselines
+  ``tilted``, ``truncate``, ``keyframe``, ``focal``), all of type
   :class:`ObjectiveConfig`; the option sets ``objective.name``.
 * ``policy``: one option per registered head (``tar_rl.policies.POLICIES``), each of its own
   config dataclass.
@@ -70,9 +71,9 @@ class ObjectiveConfig:
     """How the per-step losses of a segment are reduced (``tar_rl.TARLoss``).
 
     Attributes:
-        name: the weighting (``uniform``, ``tar`` or a control; set by the ``objective=`` option).
+        name: the weighting (``uniform``, ``tar``, a control or a baseline; set by the ``objective=`` option).
         gamma: softmax temperature on the within-segment z-scores (Eq. 6).
-        w_max: weight cap (Eq. 8).
+        w_max: weight cap (Eq. 8); also ``focal``'s exact cap (there it must be >= 1).
         eps: z-score epsilon (Eq. 5).
         cap: ``paper`` (Eq. 8 as printed: clip, then renormalise) or ``exact`` (the cap holds exactly).
         start: fraction of ``optim.steps`` trained with the uniform mean before the weighting starts
@@ -82,7 +83,14 @@ class ObjectiveConfig:
         shape: ``linear`` or ``cosine`` ramp.
         perturb_fraction: for ``perturb_high``/``perturb_low``: fraction of a segment's valid steps perturbed.
         perturb_scale: for the perturbation controls: std of the Gaussian action noise (action units).
-        compile: ``torch.compile`` the weighting (``tar``, ``invert``): ``auto`` (on CUDA with
+        tilt: for ``tilted``: the tilt ``t`` > 0 of ``M * softmax(t * loss / mean loss)`` (Li et al., ICLR 2021).
+        truncate_fraction: for ``truncate``: the fraction ``q`` in [0, 1) of a segment's valid steps, by
+            loss from the top, that weigh 0 (``floor(q * M)`` steps; Kang and Hashimoto, ACL 2020).
+        keyframe_fraction: for ``keyframe``: the fraction ``f`` in (0, 1) of a segment's valid steps, by
+            loss from the top, up-weighted (``floor(f * M + 1/2)`` steps, at least 1; after Wen et al., ICML 2021).
+        keyframe_factor: for ``keyframe``: how many times the others' weight those steps get (``K >= 1``).
+        focal_beta: for ``focal``: the exponent ``beta >= 0`` of ``(loss / mean loss) ** beta``.
+        compile: ``torch.compile`` the weighting (``tar``, ``invert``, the baselines): ``auto`` (on CUDA with
             triton: a GPU step otherwise pays ~0.5 ms of tiny kernel launches for it), ``always``
             or ``never``. Not part of a run's identity (the weights agree up to float rounding).
     """
@@ -97,6 +105,11 @@ class ObjectiveConfig:
     shape: str = "linear"
     perturb_fraction: float = 0.25
     perturb_scale: float = 0.1
+    tilt: float = 1.0
+    truncate_fraction: float = 0.1
+    keyframe_fraction: float = 0.3
+    keyframe_factor: float = 5.0
+    focal_beta: float = 1.0
     compile: str = "auto"
 
 

@@ -26,7 +26,7 @@ def record_weights(
     rows = []
     was_training = objective.training
     objective.eval()
-    p = objective.tar_params
+    p = objective.weighting_params
     try:
         with torch.no_grad():
             for task, episode, td in episodes:

@@ -253,7 +253,7 @@ def _check_init(cfg: TrainConfig, policy: Policy, info: DataInfo) -> None:
 
 
 def _check_objective_numbers(obj: ObjectiveConfig) -> None:
-    """TAR's hyper-parameters (``tar_rl.objectives.TARParams`` checks the same), named as settings."""
+    """The weightings' hyper-parameters (``tar_rl.objectives.WeightingParams`` checks the same), named as settings."""
     if not (math.isfinite(obj.gamma) and obj.gamma > 0):
         raise ConfigError(f"objective.gamma is a softmax temperature and must be a finite number > 0, got {obj.gamma}")
     if not obj.w_max > 0:
@@ -263,8 +263,23 @@ def _check_objective_numbers(obj: ObjectiveConfig) -> None:
             f"objective.cap=exact needs objective.w_max >= 1 (weights of mean 1 cannot all lie below 1), "
             f"got {obj.w_max}"
         )
+    if obj.name == "focal" and obj.w_max < 1:
+        raise ConfigError(
+            f"objective=focal caps exactly and needs objective.w_max >= 1 (weights of mean 1 cannot all lie "
+            f"below 1), got {obj.w_max}"
+        )
     if not (math.isfinite(obj.eps) and obj.eps > 0):
         raise ConfigError(f"objective.eps must be a finite number > 0, got {obj.eps}")
+    for key, ok, rule in (
+        ("tilt", lambda v: v > 0, "is the tilt of the tilted weighting and must be a finite number > 0"),
+        ("truncate_fraction", lambda v: 0 <= v < 1, "must lie in [0, 1)"),
+        ("keyframe_fraction", lambda v: 0 < v < 1, "must lie in (0, 1)"),
+        ("keyframe_factor", lambda v: v >= 1, "must be a finite number >= 1"),
+        ("focal_beta", lambda v: v >= 0, "must be a finite number >= 0"),
+    ):
+        value = getattr(obj, key)
+        if not (math.isfinite(value) and ok(value)):
+            raise ConfigError(f"objective.{key} {rule}, got {value}")
     if not 0 <= obj.perturb_fraction <= 1:
         raise ConfigError(f"objective.perturb_fraction must lie in [0, 1], got {obj.perturb_fraction}")
     if not (math.isfinite(obj.perturb_scale) and obj.perturb_scale >= 0):

@@ -442,13 +442,15 @@ class TestCompile:
         assert first._weight_function(cpu) is compiled
 
     @pytest.mark.slow
-    @pytest.mark.parametrize("name", ["tar", "invert"])
+    @pytest.mark.parametrize("name", ["tar", "invert", "tilted", "truncate", "keyframe", "focal"])
     def test_compiled_weighting_matches_eager_through_the_schedule(self, segments, name):
         from torch._dynamo.utils import counters
 
         schedule = MixSchedule(start=1, ramp=3)  # alpha 0, 0, 1/3, 2/3, 1 over five steps
-        eager = make_loss(name, schedule=schedule, return_weights=True, compile_weights="never")
-        compiled = make_loss(name, schedule=schedule, return_weights=True, compile_weights="always")
+        # segments of 6 steps: truncate's default q = 0.1 would drop nothing (floor(0.6) = 0)
+        kw = {"truncate_fraction": 0.3} if name == "truncate" else {}
+        eager = make_loss(name, schedule=schedule, return_weights=True, compile_weights="never", **kw)
+        compiled = make_loss(name, schedule=schedule, return_weights=True, compile_weights="always", **kw)
         assert compiled._weight_function(torch.device("cpu")) is not WEIGHTINGS[name].weights
         graphs = counters["stats"]["unique_graphs"]
         for _ in range(5):
@@ -481,7 +483,7 @@ class TestCompile:
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize("name", ["tar", "shuffle", "perturb_high"])
+@pytest.mark.parametrize("name", ["tar", "shuffle", "perturb_high", "keyframe", "focal"])
 def test_cuda_matches_cpu(segments, name):
     cpu, gpu = make_loss(name, cap="exact"), make_loss(name, cap="exact").cuda()
     a, b = cpu(segments), gpu(segments.cuda())

@@ -21,7 +21,7 @@ import tar_rl
 from tar_rl.objectives import MixSchedule, mix_at
 from tar_rl.objectives.weighting import (
     WEIGHTINGS,
-    TARParams,
+    WeightingParams,
     get_weighting,
     invert_weights,
     perturb_mask,
@@ -628,7 +628,19 @@ class TestControls:
 # The registry
 # ---------------------------------------------------------------------------------------------
 
-NAMES = ["uniform", "tar", "shuffle", "random", "invert", "perturb_high", "perturb_low"]
+NAMES = [
+    "uniform",
+    "tar",
+    "shuffle",
+    "random",
+    "invert",
+    "perturb_high",
+    "perturb_low",
+    "tilted",
+    "truncate",
+    "keyframe",
+    "focal",
+]
 
 
 def test_registry_names():
@@ -651,7 +663,7 @@ def test_unknown_weighting_lists_names():
 @pytest.mark.parametrize("name", NAMES)
 def test_every_weighting_is_a_unit_mean_weighting(name):
     losses, valid = padded_batch()
-    w = WEIGHTINGS[name].weights(losses, valid, TARParams(), 1.0, torch.Generator().manual_seed(0))
+    w = WEIGHTINGS[name].weights(losses, valid, WeightingParams(), 1.0, torch.Generator().manual_seed(0))
     assert w.shape == losses.shape and w.dtype == losses.dtype
     assert torch.isfinite(w).all()
     assert (w >= 0).all()
@@ -662,7 +674,7 @@ def test_every_weighting_is_a_unit_mean_weighting(name):
 
 def test_registered_tar_matches_reference_with_params():
     losses, valid = padded_batch(torch.float64)
-    params = TARParams(gamma=2.0, w_max=1.5, cap="exact")
+    params = WeightingParams(gamma=2.0, w_max=1.5, cap="exact")
     w = WEIGHTINGS["tar"].weights(losses, valid, params, 0.8, None)
     close(w, ref_tar(losses, valid, gamma=2.0, w_max=1.5, cap="exact", mix=0.8), rtol=2e-6)
 

@@ -144,6 +144,12 @@ def test_unknown_keys_and_options_are_refused_at_composition(override, error, na
         (["objective.gamma=0"], "objective.gamma"),
         (["objective.w_max=-1"], "objective.w_max"),
         (["objective.eps=0"], "objective.eps"),
+        (["objective.tilt=0"], "objective.tilt"),
+        (["objective.truncate_fraction=1.0"], "objective.truncate_fraction"),
+        (["objective.keyframe_fraction=0"], "objective.keyframe_fraction"),
+        (["objective.keyframe_factor=0.5"], "objective.keyframe_factor"),
+        (["objective.focal_beta=-1"], "objective.focal_beta"),
+        (["objective=focal", "objective.w_max=0.5"], "objective.w_max >= 1"),
         (["optim.decay=step"], "optim.decay"),
         (["optim.ema=1.0"], "optim.ema"),
         (["optim.steps=0"], "optim.steps"),
@@ -275,6 +281,29 @@ def smoke_run(tmp_path_factory, data_root):
     tmp = tmp_path_factory.mktemp("smoke")
     config = tiny(tmp, data_root, "logging.record_weights_at=[10,-1]", "eval.every=20")
     return train(config), config
+
+
+@pytest.mark.parametrize("objective", ["tilted", "truncate", "keyframe", "focal"])
+def test_each_baseline_trains_through_the_recipe(tmp_path, data_root, objective):
+    config = tiny(
+        tmp_path,
+        data_root,
+        f"objective={objective}",
+        "objective.start=0",
+        "objective.ramp=0",
+        "eval.rollouts=0",
+        "diagnostics.heldout_demos=0",
+        # segments of 8 steps: the default q = 0.1 would drop nothing (floor(0.8) = 0)
+        *(["objective.truncate_fraction=0.25"] if objective == "truncate" else []),
+    )
+    run_dir = train(config)
+    assert run_dir.name.startswith(f"{objective}-mlp-s0-")
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["finished"] and summary["objective"] == objective
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    train_rows = metrics[metrics.phase == "train"].pivot(index="step", columns="name", values="value")
+    assert (train_rows.tar_mix == 1).all() and train_rows.loss.notna().all()
+    assert (train_rows.weight_max > 1).all()  # the baseline reweights the steps from the first one
 
 
 def test_smoke_run_writes_every_output(smoke_run):

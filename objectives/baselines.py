@@ -1,0 +1,342 @@
+"""Temporal weightings from the literature, as baselines beside TAR: tilted, truncate, keyframe, focal.
+
+Each reweights the steps of a segment by their losses, as TAR does, with another rule; each
+tests one of TAR's choices. They share :mod:`~tar_rl.objectives.weighting`'s conventions:
+
+* ``losses``: floating ``[..., L]`` per-step losses, any leading dims; detached here (no
+  gradient flows through the weights). Half-precision losses are weighted in float32 and the
+  weights cast back.
+* ``valid``: ``torch.bool`` ``[..., L]``, ``True`` on real steps, ``False`` on padding.
+* the weights: shape and dtype of ``losses``, ``>= 0``, ``0`` on padding, mean ``1`` over the
+  valid steps of a segment that has one, all ``0`` in a segment that has none; all ``1`` when
+  a segment's valid losses are equal and on a lone valid step.
+* ``mix``: the schedule's alpha, blended as for TAR: ``(1 - mix) * 1 + mix * w`` on the valid
+  steps (before ``focal``'s cap, as TAR's is applied after its blend).
+
+``tilted`` and ``focal`` divide by a segment's mean loss and need losses ``>= 0`` (every
+imitation loss of tar-rl's heads is a squared or absolute error); a negative loss at a valid
+step is refused. ``truncate`` and ``keyframe`` rank the steps by loss; steps of equal loss at
+the boundary of the selection share it equally (below), so that every weight is a function of
+the step's loss and of the segment's multiset of losses: the weights are equivariant under
+any permutation of the steps, ties included.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .weighting import (
+    DEFAULT_FOCAL_BETA,
+    DEFAULT_KEYFRAME_FACTOR,
+    DEFAULT_KEYFRAME_FRACTION,
+    DEFAULT_TILT,
+    DEFAULT_TRUNCATE_FRACTION,
+    DEFAULT_W_MAX,
+    HALF_DTYPES,
+    WEIGHTINGS,
+    Weighting,
+    WeightingParams,
+    cap_exact,
+    check_step_losses,
+    mix_uniform,
+    unit_mean_softmax,
+)
+
+__all__ = [
+    "COUNT_TOLERANCE",
+    "focal_weights",
+    "keyframe_count",
+    "keyframe_weights",
+    "tilted_weights",
+    "truncate_count",
+    "truncate_weights",
+]
+
+#: Added to ``q * n`` (``f * n + 1/2``) before rounding down, so that a product that is an
+#: integer on paper but falls just below it in binary (``0.29 * 100 = 28.999...``) rounds as on paper.
+COUNT_TOLERANCE = 1e-9
+
+
+# ---------------------------------------------------------------------------------------------
+# Shared steps. Internal: they assume checked inputs.
+# ---------------------------------------------------------------------------------------------
+
+
+def _prepare(losses: Tensor, valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Detached losses (float32 for half inputs, 0 on padding), the float mask and ``[..., 1]`` valid counts."""
+    x = losses.detach()
+    x = x.float() if x.dtype in HALF_DTYPES else x
+    x = torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device))  # padding may hold NaN
+    m = valid.to(x.dtype)
+    return x, m, m.sum(-1, keepdim=True)
+
+
+def _check_nonnegative(x: Tensor, valid: Tensor, name: str) -> None:
+    """Refuse a negative loss at a valid step (an in-graph assertion under ``torch.compile``)."""
+    bad = valid & (x < 0)
+    message = f"the {name} weighting divides by a segment's mean loss and needs per-step losses >= 0."
+    if torch.compiler.is_compiling():
+        torch._assert_async(~bad.any(), message)
+        return
+    if bad.any():
+        first = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(f"{message} {int(bad.sum())} valid steps are negative (first at {first}, {x[first].item()}).")
+
+
+def truncate_count(n_valid: Tensor, fraction: float) -> Tensor:
+    """Steps ``truncate`` drops from a segment of ``n_valid`` valid steps: ``floor(q * n)``, at most ``n - 1``.
+
+    A segment drops nothing unless ``q * n >= 1`` (with ``q = 0.1``: segments of fewer than 10
+    valid steps keep them all). The product is taken in float64 with :data:`COUNT_TOLERANCE`.
+    Returns a float64 tensor shaped like ``n_valid``.
+    """
+    n = n_valid.to(torch.float64)
+    return torch.minimum(torch.floor(n * fraction + COUNT_TOLERANCE), (n - 1).clamp_min(0))
+
+
+def keyframe_count(n_valid: Tensor, fraction: float) -> Tensor:
+    """Steps ``keyframe`` up-weights in a segment of ``n_valid`` valid steps: ``f * n`` rounded to the
+    nearest integer, halves up (``floor(f * n + 1/2)``, as ``perturb_mask`` rounds), at least 1 and
+    at most ``n`` (``0`` for ``n = 0``). Float64, with :data:`COUNT_TOLERANCE`."""
+    n = n_valid.to(torch.float64)
+    return torch.minimum(torch.floor(n * fraction + 0.5 + COUNT_TOLERANCE).clamp_min(1), n)
+
+
+def _top_share(x: Tensor, valid: Tensor, n_valid: Tensor, count: Tensor) -> Tensor:
+    """Per step, its share in the ``count`` highest-loss valid steps of its segment, in ``[0, 1]``.
+
+    A step with ``a`` valid steps of strictly larger loss and ``e`` of equal loss (itself
+    included) gets ``clamp((count - a) / e, 0, 1)``: the steps above the boundary get 1, those
+    below 0, and a group of equal losses straddling it shares what is left equally. The shares
+    of a segment sum to ``count``; padding gets 0. One sort per segment.
+    """
+    keys = torch.where(valid, x, torch.full((), math.inf, dtype=x.dtype, device=x.device))
+    ordered = keys.sort(dim=-1).values.contiguous()
+    below = torch.searchsorted(ordered, keys.contiguous(), side="left")  # valid steps of smaller loss
+    upto = torch.searchsorted(ordered, keys.contiguous(), side="right")  # ... of smaller or equal loss
+    above = n_valid - upto.to(x.dtype)
+    ties = (upto - below).to(x.dtype).clamp_min(1)
+    share = ((count.to(x.dtype) - above) / ties).clamp(0, 1)
+    return torch.where(valid, share, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+# ---------------------------------------------------------------------------------------------
+# The four rules, on prepared inputs
+# ---------------------------------------------------------------------------------------------
+
+
+def _tilted(x: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, tilt: float) -> Tensor:
+    mean = x.sum(-1, keepdim=True) / n_valid.clamp_min(1)
+    # x / mean lies in [0, n]; a segment of zero losses has mean 0 and gets scores 0 (uniform).
+    scores = x / mean.clamp_min(torch.finfo(x.dtype).tiny)
+    return unit_mean_softmax(scores, valid, m, n_valid, tilt)
+
+
+def _truncate(x: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, fraction: float) -> Tensor:
+    count = truncate_count(n_valid, fraction).to(x.dtype)
+    share = _top_share(x, valid, n_valid, count)
+    return (m - share) * (n_valid / (n_valid - count).clamp_min(1))
+
+
+def _keyframe(x: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, fraction: float, factor: float) -> Tensor:
+    count = keyframe_count(n_valid, fraction).to(x.dtype)
+    share = _top_share(x, valid, n_valid, count)
+    extra = factor - 1
+    return (m + extra * share) * (n_valid / (n_valid + extra * count).clamp_min(1))
+
+
+def _focal(x: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, beta: float) -> Tensor:
+    # (l / mean) ** beta renormalised to unit mean is M * softmax(beta * log l): the mean cancels.
+    # A segment whose valid losses are all 0 has equal losses: it is weighted uniformly.
+    zero_segment = (x * m).amax(-1, keepdim=True) <= 0
+    x = torch.where(zero_segment, torch.ones((), dtype=x.dtype, device=x.device), x)
+    logits = torch.xlogy(beta, x)  # beta * log l; -inf for l = 0 when beta > 0, 0 when beta = 0
+    return unit_mean_softmax(logits, valid, m, n_valid, 1.0)
+
+
+def _finish(w: Tensor, m: Tensor, mix: float | Tensor, dtype: torch.dtype) -> Tensor:
+    return (mix_uniform(w, m, mix) * m).to(dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# Public weightings
+# ---------------------------------------------------------------------------------------------
+
+
+def tilted_weights(losses: Tensor, valid: Tensor, *, tilt: float = DEFAULT_TILT, mix: float | Tensor = 1.0) -> Tensor:
+    """Tilted empirical risk over the steps of a segment, made scale-free.
+
+    Follows Li, Beirami, Sanjabi and Smith, "Tilted Empirical Risk Minimization" (ICLR 2021):
+    the gradient of the tilted risk ``(1/t) log mean exp(t l)`` weights each loss by
+    ``softmax(t l)``. Here the losses are divided by the segment's mean valid loss first, so one
+    ``t`` means the same on heads whose losses differ by orders of magnitude::
+
+        w = M * softmax(t * l / mean(l))   over a segment's M valid steps
+
+    Softmax ignores shifts, so this is TAR (Eqs. 5-7) with the segment's mean in place of its
+    standard deviation and without the cap: it tests those two choices.
+
+    Args:
+        losses: ``[..., L]`` per-step losses, ``>= 0`` at valid steps.
+        valid: ``[..., L]`` bool mask.
+
+    Keyword Args:
+        tilt: ``t``, a finite number ``> 0``. Default ``1.0``.
+        mix: the schedule's alpha in ``[0, 1]``; ``0`` gives uniform weights.
+
+    Returns:
+        Weights as described in :mod:`~tar_rl.objectives.baselines`; no cap.
+    """
+    params = WeightingParams(tilt=tilt)
+    return _tilted_registered(losses, valid, params, mix, None)
+
+
+def truncate_weights(
+    losses: Tensor, valid: Tensor, *, fraction: float = DEFAULT_TRUNCATE_FRACTION, mix: float | Tensor = 1.0
+) -> Tensor:
+    """Loss truncation over the steps of a segment: the highest-loss steps weigh 0.
+
+    Follows Kang and Hashimoto, "Improved Natural Language Generation via Loss Truncation"
+    (ACL 2020), which drops the examples of highest loss as likely noise: here, in a segment of
+    ``n`` valid steps, the ``k = floor(q * n)`` highest-loss steps (:func:`truncate_count`; at most
+    ``n - 1``) get weight 0 and the others ``n / (n - k)``. Steps of equal loss at the boundary
+    share the dropped mass equally (a group of ``e`` tied steps of which ``r`` fall among the top
+    ``k`` each get ``(1 - r / e) * n / (n - k)``). The robust opposite of TAR: it bets that
+    high-loss steps are noise.
+
+    Keyword Args:
+        fraction: ``q``, in ``[0, 1)``. Default ``0.1``: a 16-step segment drops its top step;
+            segments of fewer than 10 valid steps drop nothing.
+        mix: the schedule's alpha in ``[0, 1]``.
+    """
+    params = WeightingParams(truncate_fraction=fraction)
+    return _truncate_registered(losses, valid, params, mix, None)
+
+
+def keyframe_weights(
+    losses: Tensor,
+    valid: Tensor,
+    *,
+    fraction: float = DEFAULT_KEYFRAME_FRACTION,
+    factor: float = DEFAULT_KEYFRAME_FACTOR,
+    mix: float | Tensor = 1.0,
+) -> Tensor:
+    """Keyframe-focused weighting: the highest-loss steps weigh ``K`` times the others.
+
+    After Wen et al., "Keyframe-Focused Visual Imitation Learning" (ICML 2021), which up-weights
+    the few keyframes where the expert's action changes in a way its past does not predict; here
+    the keyframes of a segment of ``n`` valid steps are its ``k`` highest-loss steps,
+    ``k = floor(f * n + 1/2)``, at least 1 (:func:`keyframe_count`).
+    They get ``K * n / (n + (K - 1) k)``, the others ``n / (n + (K - 1) k)``; tied steps at the
+    boundary share the selection equally. A hard-threshold relative of TAR.
+
+    Keyword Args:
+        fraction: ``f``, in ``(0, 1)``. Default ``0.3``.
+        factor: ``K``, a finite number ``>= 1`` (``1``: uniform). Default ``5.0``.
+        mix: the schedule's alpha in ``[0, 1]``.
+    """
+    params = WeightingParams(keyframe_fraction=fraction, keyframe_factor=factor)
+    return _keyframe_registered(losses, valid, params, mix, None)
+
+
+def focal_weights(
+    losses: Tensor,
+    valid: Tensor,
+    *,
+    beta: float = DEFAULT_FOCAL_BETA,
+    w_max: float = DEFAULT_W_MAX,
+    mix: float | Tensor = 1.0,
+) -> Tensor:
+    """A regression analogue of focal weighting: ``w ~ (l / mean l) ** beta``, unit mean, capped.
+
+    After Lin, Goyal, Girshick, He and Dollar, "Focal Loss for Dense Object Detection" (ICCV 2017),
+    whose factor ``(1 - p) ** gamma`` grows with the error of an example; for a regression loss
+    the error is the loss itself, relative to the segment's mean valid loss. The weights
+    ``(l / mean l) ** beta`` are renormalised to unit mean over the valid steps, blended with
+    uniform by ``mix``, then capped exactly at ``w_max``: the unit-mean ``min(c * w, w_max)``
+    (TAR's ``cap="exact"``). A polynomial relative of TAR's exponential emphasis. Steps of loss
+    0 weigh 0 for ``beta > 0`` (when the other steps cannot carry the mass under the cap, they
+    share the rest equally); a segment of zero losses is weighted uniformly.
+
+    Args:
+        losses: ``[..., L]`` per-step losses, ``>= 0`` at valid steps.
+        valid: ``[..., L]`` bool mask.
+
+    Keyword Args:
+        beta: a finite number ``>= 0`` (``0``: uniform). Default ``1.0``.
+        w_max: the cap, ``>= 1`` (``math.inf``: none). Default ``3.0``.
+        mix: the schedule's alpha in ``[0, 1]``.
+    """
+    params = WeightingParams(focal_beta=beta, w_max=w_max)
+    _check_focal(params)
+    return _focal_registered(losses, valid, params, mix, None)
+
+
+# ---------------------------------------------------------------------------------------------
+# Registration: (losses, valid, params, mix, generator) -> weights
+# ---------------------------------------------------------------------------------------------
+
+
+def _check_focal(params: WeightingParams) -> None:
+    if not params.w_max >= 1:
+        raise ValueError(
+            f"w_max must be >= 1 for the focal weighting, whose cap is exact (weights of mean 1 cannot all "
+            f"lie below 1), got {params.w_max!r}."
+        )
+
+
+def _tilted_registered(losses, valid, params, mix, generator):
+    check_step_losses(losses, valid)
+    x, m, n_valid = _prepare(losses, valid)
+    _check_nonnegative(x, valid, "tilted")
+    return _finish(_tilted(x, valid, m, n_valid, params.tilt), m, mix, losses.dtype)
+
+
+def _truncate_registered(losses, valid, params, mix, generator):
+    check_step_losses(losses, valid)
+    x, m, n_valid = _prepare(losses, valid)
+    return _finish(_truncate(x, valid, m, n_valid, params.truncate_fraction), m, mix, losses.dtype)
+
+
+def _keyframe_registered(losses, valid, params, mix, generator):
+    check_step_losses(losses, valid)
+    x, m, n_valid = _prepare(losses, valid)
+    w = _keyframe(x, valid, m, n_valid, params.keyframe_fraction, params.keyframe_factor)
+    return _finish(w, m, mix, losses.dtype)
+
+
+def _focal_registered(losses, valid, params, mix, generator):
+    check_step_losses(losses, valid)
+    x, m, n_valid = _prepare(losses, valid)
+    _check_nonnegative(x, valid, "focal")
+    w = mix_uniform(_focal(x, valid, m, n_valid, params.focal_beta), m, mix)
+    return cap_exact(w * m, m, n_valid, params.w_max).to(losses.dtype)
+
+
+for _w in (
+    Weighting(
+        "tilted",
+        _tilted_registered,
+        summary="tilted empirical risk over a segment's steps, M * softmax(t * l / mean l) (Li et al. 2021)",
+    ),
+    Weighting(
+        "truncate",
+        _truncate_registered,
+        summary="loss truncation: a segment's top fraction q of steps by loss weigh 0 (Kang and Hashimoto 2020)",
+    ),
+    Weighting(
+        "keyframe",
+        _keyframe_registered,
+        summary="a segment's top fraction f of steps by loss weigh K times the others (after Wen et al. 2021)",
+    ),
+    Weighting(
+        "focal",
+        _focal_registered,
+        check=_check_focal,
+        summary="(l / mean l) ** beta, unit mean, exact cap at w_max (focal weighting for regression)",
+    ),
+):
+    WEIGHTINGS.register(_w.name, _w)
