@@ -12,7 +12,7 @@ from typing import Any
 
 from tar_rl.collectors.suites import SUITES, Suite, suite_for
 from tar_rl.data import DemoDataset
-from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS
+from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, WeightingParams
 from tar_rl.policies import DataInfo, Policy
 
 from . import diagnose, post_training
@@ -270,16 +270,11 @@ def _check_objective_numbers(obj: ObjectiveConfig) -> None:
         )
     if not (math.isfinite(obj.eps) and obj.eps > 0):
         raise ConfigError(f"objective.eps must be a finite number > 0, got {obj.eps}")
-    for key, ok, rule in (
-        ("tilt", lambda v: v > 0, "is the tilt of the tilted weighting and must be a finite number > 0"),
-        ("truncate_fraction", lambda v: 0 <= v < 1, "must lie in [0, 1)"),
-        ("keyframe_fraction", lambda v: 0 < v < 1, "must lie in (0, 1)"),
-        ("keyframe_factor", lambda v: v >= 1, "must be a finite number >= 1"),
-        ("focal_beta", lambda v: v >= 0, "must be a finite number >= 0"),
-    ):
-        value = getattr(obj, key)
-        if not (math.isfinite(value) and ok(value)):
-            raise ConfigError(f"objective.{key} {rule}, got {value}")
+    baselines = ("tilt", "truncate_fraction", "keyframe_fraction", "keyframe_factor", "focal_beta")
+    try:  # the baselines' rules live in WeightingParams; its message names the parameter
+        WeightingParams(**{key: getattr(obj, key) for key in baselines})
+    except ValueError as err:
+        raise ConfigError(f"objective.{err}") from None
     if not 0 <= obj.perturb_fraction <= 1:
         raise ConfigError(f"objective.perturb_fraction must lie in [0, 1], got {obj.perturb_fraction}")
     if not (math.isfinite(obj.perturb_scale) and obj.perturb_scale >= 0):
