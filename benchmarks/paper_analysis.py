@@ -364,6 +364,7 @@ def plot_weight_phases(
     tasks: Sequence[str],
     step: int | None = None,
     caption: str = "",
+    gripper: bool = False,
     **phase_kw,
 ) -> Path:
     """The paper's Fig. 5: per-step loss and TAR weight along one demonstration per task, with phases.
@@ -379,6 +380,7 @@ def plot_weight_phases(
         tasks: the tasks, one panel each.
         step: the training step of the recording (default: the largest).
         caption: provenance text for the footer.
+        gripper: also draw the gripper action (grey, on an axis of its own at the far right).
         **phase_kw: ``onset`` and ``completion`` of :func:`phase_labels`.
 
     Returns:
@@ -399,7 +401,8 @@ def plot_weight_phases(
 
     height = 2.6 * len(tasks) + 1.2
     fig = new_figure(8.0, height)
-    fig.subplots_adjust(left=0.12, right=0.9, top=1 - 0.5 / height, bottom=0.75 / height, hspace=0.55)
+    right = 0.82 if gripper else 0.9
+    fig.subplots_adjust(left=0.12, right=right, top=1 - 0.5 / height, bottom=0.75 / height, hspace=0.55)
     axes = fig.subplots(len(tasks), 1, squeeze=False)[:, 0]
     for ax, task in zip(axes, tasks):
         tdf = df[df["task"] == task]
@@ -424,6 +427,12 @@ def plot_weight_phases(
             ax.axvline(t[close], color="k", linestyle="--", linewidth=0.9)
         ax.set_ylim(0, top * 1.1)
         ax_w.set_ylim(bottom=0)
+        if gripper:
+            ax_g = ax.twinx()
+            ax_g.spines["right"].set_position(("axes", 1.12))
+            ax_g.plot(t, one["gripper"].to_numpy(dtype=float), color="0.5", linewidth=0.9, drawstyle="steps-mid")
+            ax_g.set_ylim(-1.3, 1.1)
+            ax_g.set_ylabel("gripper action", color="0.4", fontsize=8)
         ax.set_ylabel("loss", color="C0", fontsize=8)
         ax_w.set_ylabel("TAR weight", color="C3", fontsize=8)
         anchor = f"gripper closes at t = {t[close]}" if close is not None else "no gripper closing: no contact anchor"
