@@ -102,9 +102,9 @@ def validate(config: dict) -> Job:
         if given is not None:
             placeholder = DataInfo.from_metadata(given.metadata)
         else:
-            placeholder = DataInfo(
-                n_tasks=len(suite.task_names),
-                instructions=tuple(suite.instructions.get(t) or "" for t in suite.task_names),
+            placeholder = DataInfo.for_tasks(
+                suite.task_names,
+                suite.instructions,
                 chunk_horizon=cfg.data.chunk_horizon,
                 history=cfg.data.history,
                 image_size=cfg.data.image_size,

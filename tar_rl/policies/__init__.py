@@ -28,7 +28,7 @@ of the network, so a checkpoint's state dict restores them.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from tensordict.nn import TensorDictModule
@@ -86,21 +86,26 @@ class DataInfo:
     instructions: tuple[str, ...] | None = None
 
     @classmethod
+    def for_tasks(cls, names: Sequence[str], instructions: Mapping[str, str] | None, **fields) -> DataInfo:
+        """The description of data whose task ids index ``names``, each with its instruction (``""`` where
+        ``instructions`` has none); ``fields`` are the other attributes."""
+        texts = instructions or {}
+        return cls(n_tasks=len(names), instructions=tuple(texts.get(name) or "" for name in names), **fields)
+
+    @classmethod
     def from_metadata(cls, metadata: dict) -> DataInfo:
         """Read the dimensions, observation statistics, task ids and instructions from a dataset's metadata."""
         stats = metadata["stats"]["observation"]
-        names = metadata["task_names"]
-        texts = metadata.get("instructions") or {}
-        return cls(
+        return cls.for_tasks(
+            metadata["task_names"],
+            metadata.get("instructions"),
             obs_dim=len(stats["mean"]),
             action_dim=len(metadata["stats"]["action"]["mean"]),
-            n_tasks=len(names),
             obs_mean=tuple(stats["mean"]),
             obs_std=tuple(stats["std"]),
             chunk_horizon=int(metadata["chunk_horizon"]),
             history=int(metadata.get("history", 1)),
             image_size=int(metadata.get("image_size", 0)),
-            instructions=tuple(texts.get(name) or "" for name in names),
         )
 
     def to_dict(self) -> dict:
