@@ -5,10 +5,12 @@ Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.t
 
 from .baselines import (
     COUNT_TOLERANCE,
+    dro_time_weights,
     focal_weights,
     keyframe_count,
     keyframe_weights,
     tilted_weights,
+    time_bins,
     truncate_count,
     truncate_weights,
 )
@@ -17,6 +19,8 @@ from .supervision import perturb_target
 from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
 from .weighting import (
     CAP_MODES,
+    DEFAULT_DRO_BINS,
+    DEFAULT_DRO_ETA,
     DEFAULT_EPS,
     DEFAULT_FOCAL_BETA,
     DEFAULT_GAMMA,
@@ -43,6 +47,8 @@ __all__ = [
     "CAP_MODES",
     "COMPILE_MODES",
     "COUNT_TOLERANCE",
+    "DEFAULT_DRO_BINS",
+    "DEFAULT_DRO_ETA",
     "DEFAULT_EPS",
     "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
@@ -60,6 +66,7 @@ __all__ = [
     "WeightingParams",
     "check_step_losses",
     "compiles_weights",
+    "dro_time_weights",
     "focal_weights",
     "get_weighting",
     "invert_weights",
@@ -73,6 +80,7 @@ __all__ = [
     "shuffle_weights",
     "tar_weights",
     "tilted_weights",
+    "time_bins",
     "truncate_count",
     "truncate_weights",
     "uniform_weights",

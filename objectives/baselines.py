@@ -1,24 +1,33 @@
-"""Temporal weightings from the literature, as baselines beside TAR: tilted, truncate, keyframe, focal.
+"""Temporal weightings from the literature, as baselines beside TAR: tilted, truncate, keyframe, focal, dro_time.
 
-Each reweights the steps of a segment by their losses, as TAR does, with another rule; each
-tests one of TAR's choices. They share :mod:`~tar_rl.objectives.weighting`'s conventions:
+Each reweights the steps of a segment with another rule than TAR's; each tests one of TAR's
+choices. They share :mod:`~tar_rl.objectives.weighting`'s conventions:
 
 * ``losses``: floating ``[..., L]`` per-step losses, any leading dims; detached here (no
   gradient flows through the weights). Half-precision losses are weighted in float32 and the
   weights cast back.
 * ``valid``: ``torch.bool`` ``[..., L]``, ``True`` on real steps, ``False`` on padding.
 * the weights: shape and dtype of ``losses``, ``>= 0``, ``0`` on padding, mean ``1`` over the
-  valid steps of a segment that has one, all ``0`` in a segment that has none; all ``1`` when
-  a segment's valid losses are equal and on a lone valid step.
+  valid steps of a segment that has one, all ``0`` in a segment that has none; ``1`` on a lone
+  valid step; all ``1`` when a segment's valid losses are equal (except ``dro_time``, whose
+  weights depend on where the steps lie in their episodes, not on their own losses).
 * ``mix``: the schedule's alpha, blended as for TAR: ``(1 - mix) * 1 + mix * w`` on the valid
   steps (before ``focal``'s cap, as TAR's is applied after its blend).
 
-``tilted`` and ``focal`` divide by a segment's mean loss and need losses ``>= 0`` (every
+``tilted``, ``truncate``, ``keyframe`` and ``focal`` reweight the steps of a segment by their own
+losses. ``tilted`` and ``focal`` divide by a segment's mean loss and need losses ``>= 0`` (every
 imitation loss of tar-rl's heads is a squared or absolute error); a negative loss at a valid
 step is refused. ``truncate`` and ``keyframe`` rank the steps by loss; steps of equal loss at
 the boundary of the selection share it equally (below), so that every weight is a function of
 the step's loss and of the segment's multiset of losses: the weights are equivariant under
 any permutation of the steps, ties included.
+
+``dro_time`` is group DRO over time: it weights a step by the group weight of its bin of
+normalised episode time, which it learns online from the losses of every batch (its state, the
+``[G]`` log group weights, is carried from step to step; :class:`~tar_rl.objectives.TARLoss`
+holds it). It needs each step's position in its episode (the dataset's ``step`` and the
+episode's length) and is not permutation equivariant. It divides by the batch's mean loss and
+needs losses ``>= 0`` too.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ import torch
 from torch import Tensor
 
 from .weighting import (
+    DEFAULT_DRO_ETA,
     DEFAULT_FOCAL_BETA,
     DEFAULT_KEYFRAME_FACTOR,
     DEFAULT_KEYFRAME_FRACTION,
@@ -47,10 +57,12 @@ from .weighting import (
 
 __all__ = [
     "COUNT_TOLERANCE",
+    "dro_time_weights",
     "focal_weights",
     "keyframe_count",
     "keyframe_weights",
     "tilted_weights",
+    "time_bins",
     "truncate_count",
     "truncate_weights",
 ]
@@ -74,10 +86,10 @@ def _prepare(losses: Tensor, valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return x, m, m.sum(-1, keepdim=True)
 
 
-def _check_nonnegative(x: Tensor, valid: Tensor, name: str) -> None:
+def _check_nonnegative(x: Tensor, valid: Tensor, name: str, by: str = "a segment's mean loss") -> None:
     """Refuse a negative loss at a valid step (an in-graph assertion under ``torch.compile``)."""
     bad = valid & (x < 0)
-    message = f"the {name} weighting divides by a segment's mean loss and needs per-step losses >= 0."
+    message = f"the {name} weighting divides by {by} and needs per-step losses >= 0."
     if torch.compiler.is_compiling():
         torch._assert_async(~bad.any(), message)
         return
@@ -155,6 +167,42 @@ def _focal(x: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, beta: float) ->
     x = torch.where(zero_segment, torch.ones((), dtype=x.dtype, device=x.device), x)
     logits = torch.xlogy(beta, x)  # beta * log l; -inf for l = 0 when beta > 0, 0 when beta = 0
     return unit_mean_softmax(logits, valid, m, n_valid, 1.0)
+
+
+def _dro_time_update(x: Tensor, m: Tensor, time_bin: Tensor, log_q: Tensor, eta: float, reduce) -> Tensor:
+    """One exponentiated-gradient step of the log group weights ``log_q`` ``[G]`` from a batch.
+
+    The per-bin sums of the valid losses and the per-bin counts of valid steps are taken in
+    ``log_q``'s dtype, passed through ``reduce`` (a sum over ranks) when given, then each bin with
+    a valid step moves by ``eta * mean loss of the bin / mean loss of the batch``; a bin without
+    one does not move. Renormalised with ``logsumexp``.
+    """
+    bins, dtype = log_q.shape[-1], log_q.dtype
+    index = time_bin.reshape(-1)
+    stats = torch.zeros(2, bins, dtype=dtype, device=log_q.device)
+    stats[0].scatter_add_(0, index, (x * m).reshape(-1).to(dtype))
+    stats[1].scatter_add_(0, index, m.reshape(-1).to(dtype))
+    if reduce is not None:
+        stats = reduce(stats)
+    sums, counts = stats.unbind(0)
+    batch_mean = sums.sum() / counts.sum().clamp_min(1)
+    # Losses all 0: every ratio 0 (nothing moves).
+    ratio = (sums / counts.clamp_min(1)) / batch_mean.clamp_min(torch.finfo(dtype).tiny)
+    moved = log_q + torch.where(counts > 0, eta * ratio, torch.zeros((), dtype=dtype, device=log_q.device))
+    return moved - torch.logsumexp(moved, dim=-1)
+
+
+def _dro_time(
+    losses: Tensor, valid: Tensor, time_bin: Tensor, log_q: Tensor, eta: float, mix: float | Tensor, reduce
+) -> tuple[Tensor, Tensor]:
+    """The update of the group weights, then the weights, on checked inputs."""
+    x, m, n_valid = _prepare(losses, valid)
+    _check_nonnegative(x, valid, "dro_time", by="the batch's mean loss")
+    new_log_q = _dro_time_update(x, m, time_bin, log_q, eta, reduce)
+    # w = M * softmax of log q[bin] over a segment's valid steps: G * q_g(t) normalised to unit mean.
+    # In the state's dtype, so that a tiny q does not round to 0 first.
+    w = unit_mean_softmax(new_log_q[time_bin], valid, m.to(new_log_q.dtype), n_valid.to(new_log_q.dtype), 1.0)
+    return _finish(w, m.to(w.dtype), mix, losses.dtype), new_log_q
 
 
 def _finish(w: Tensor, m: Tensor, mix: float | Tensor, dtype: torch.dtype) -> Tensor:
@@ -275,8 +323,111 @@ def focal_weights(
     return _focal_registered(losses, valid, params, mix, None)
 
 
+def time_bins(step: Tensor, episode_length: Tensor, bins: int, valid: Tensor | None = None) -> Tensor:
+    """The bin of normalised episode time of each step: ``floor(bins * step / episode_length)``.
+
+    Computed in integers, so that a step on a bin's boundary falls in the bin it opens (step 3 of
+    an episode of 10 steps lies in bin 3 of 10). The steps ``0 .. T-1`` of an episode of ``T``
+    steps fall in the bins ``0 .. bins-1``.
+
+    Args:
+        step: integer ``[..., L]``, each step's index in its episode (the dataset's ``step``).
+        episode_length: integer ``[..., L]``, the length of that episode.
+        bins: ``G``, an integer ``>= 1``.
+        valid: optional bool ``[..., L]``; only these steps are checked (padding may hold
+            anything: it is put in a bin in range).
+
+    Returns:
+        int64 ``[..., L]`` in ``0 .. bins-1``.
+
+    Raises:
+        TypeError, ValueError: a non-integer tensor, mismatched shapes, or a step (a valid one)
+            outside ``0 .. episode_length - 1``.
+    """
+    for name, value in (("step", step), ("episode_length", episode_length)):
+        integer = isinstance(value, Tensor) and not (value.is_floating_point() or value.is_complex())
+        if not integer or value.dtype == torch.bool:
+            raise TypeError(f"{name} must be an integer tensor, got {getattr(value, 'dtype', type(value).__name__)}.")
+    if step.shape != episode_length.shape or (valid is not None and valid.shape != step.shape):
+        shapes = [tuple(t.shape) for t in (step, episode_length, *([] if valid is None else [valid]))]
+        raise ValueError(f"step, episode_length (and valid) must have the same shape, got {shapes}.")
+    step, length = step.long(), episode_length.long()
+    bad = (step < 0) | (step >= length)
+    if valid is not None:
+        bad = bad & valid
+    if bad.any():
+        first = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(
+            f"{int(bad.sum())} steps lie outside their episode (0 <= step < episode_length fails; first at "
+            f"{first}: step {int(step[first])}, episode_length {int(length[first])})."
+        )
+    return torch.div(step * bins, length.clamp_min(1), rounding_mode="floor").clamp(0, bins - 1)
+
+
+def dro_time_weights(
+    losses: Tensor,
+    valid: Tensor,
+    time_bin: Tensor,
+    log_q: Tensor,
+    *,
+    eta: float = DEFAULT_DRO_ETA,
+    mix: float | Tensor = 1.0,
+    reduce=None,
+) -> tuple[Tensor, Tensor]:
+    """Group DRO over bins of normalised episode time: one online step, then the weights.
+
+    Follows Sagawa, Koh, Hashimoto and Liang, "Distributionally Robust Neural Networks for Group
+    Shifts" (ICLR 2020), whose online algorithm keeps a distribution ``q`` over groups, moves it
+    towards the groups of high loss by an exponentiated-gradient step each batch and weights each
+    example by its group's ``q``. Here the groups are ``G`` bins of normalised episode time
+    (:func:`time_bins`), so the objective up-weights the phases of the demonstrations that the
+    policy fits worst. Each call, on the batch's valid steps:
+
+    1. ``q_g <- q_g * exp(eta * Lbar_g / Lbar)`` for every bin ``g`` with a valid step, ``Lbar_g``
+       the bin's mean loss and ``Lbar`` the batch's; a bin without one is not multiplied; then
+       ``q`` is renormalised to sum 1. Kept as ``log q`` (renormalised with ``logsumexp``), so it
+       never underflows.
+    2. A step ``t`` of a segment gets ``G * q_g(t)`` normalised to unit mean over the segment's
+       valid steps, i.e. ``M * softmax(log q[bin(t)])`` over its ``M`` valid steps, blended with
+       uniform by ``mix``.
+
+    The one deviation from Sagawa et al.: the exponent divides the bin's mean loss by the batch's
+    (their step uses the loss itself), which makes the update scale-free, as ``tilted`` is, so that
+    one ``eta`` means the same on heads whose losses differ by orders of magnitude.
+
+    Args:
+        losses: ``[..., L]`` per-step losses, ``>= 0`` at valid steps.
+        valid: ``[..., L]`` bool mask.
+        time_bin: integer ``[..., L]``, each step's bin in ``0 .. G-1`` (:func:`time_bins`).
+        log_q: ``[G]`` floating, the log group weights before this batch (``logsumexp`` 0); not
+            modified. Start from ``-log G`` everywhere (uniform).
+
+    Keyword Args:
+        eta: the step size, a finite number ``> 0``. Default ``0.01`` (Sagawa et al.'s).
+        mix: the schedule's alpha in ``[0, 1]``; ``0`` gives uniform weights (``q`` moves anyway).
+        reduce: ``None``, or a function summing a ``[2, G]`` tensor over the ranks of a distributed
+            job (the per-bin loss sums and valid counts), so that every rank takes the same step.
+
+    Returns:
+        ``(weights, new_log_q)``: the weights as described in :mod:`~tar_rl.objectives.baselines`
+        (uniform in a segment whose valid steps share one bin), and the updated ``[G]`` log group
+        weights in ``log_q``'s dtype.
+    """
+    if not (isinstance(log_q, Tensor) and log_q.is_floating_point() and log_q.ndim == 1 and log_q.numel() >= 1):
+        raise ValueError(f"log_q must be a [G] floating tensor, got {getattr(log_q, 'shape', type(log_q).__name__)}.")
+    params = WeightingParams(dro_eta=eta, dro_bins=log_q.shape[0])
+    check_step_losses(losses, valid)
+    if not isinstance(time_bin, Tensor) or time_bin.is_floating_point() or time_bin.shape != losses.shape:
+        raise ValueError(f"time_bin must be an integer tensor shaped like losses {tuple(losses.shape)}.")
+    time_bin = time_bin.long()
+    if (valid & ((time_bin < 0) | (time_bin >= params.dro_bins))).any():
+        raise ValueError(f"time_bin must lie in 0 .. {params.dro_bins - 1} at the valid steps.")
+    time_bin = time_bin.clamp(0, params.dro_bins - 1)
+    return _dro_time(losses, valid, time_bin, log_q, params.dro_eta, mix, reduce)
+
+
 # ---------------------------------------------------------------------------------------------
-# Registration: (losses, valid, params, mix, generator) -> weights
+# Registration: (losses, valid, params, mix, generator, **inputs) -> weights (see Weighting)
 # ---------------------------------------------------------------------------------------------
 
 
@@ -316,6 +467,17 @@ def _focal_registered(losses, valid, params, mix, generator):
     return cap_exact(w * m, m, n_valid, params.w_max).to(losses.dtype)
 
 
+def _dro_time_registered(losses, valid, params, mix, generator, *, step, episode_length, state, reduce=None):
+    check_step_losses(losses, valid)
+    time_bin = time_bins(step, episode_length, params.dro_bins, valid)
+    return _dro_time(losses, valid, time_bin, state, params.dro_eta, mix, reduce)
+
+
+def _dro_time_initial_state(params: WeightingParams) -> Tensor:
+    """Uniform group weights, as ``log q`` (float64: ``[G]`` numbers, kept exactly over a long run)."""
+    return torch.full((params.dro_bins,), -math.log(params.dro_bins), dtype=torch.float64)
+
+
 for _w in (
     Weighting(
         "tilted",
@@ -337,6 +499,13 @@ for _w in (
         _focal_registered,
         check=_check_focal,
         summary="(l / mean l) ** beta, unit mean, exact cap at w_max (focal weighting for regression)",
+    ),
+    Weighting(
+        "dro_time",
+        _dro_time_registered,
+        reads_time=True,
+        initial_state=_dro_time_initial_state,
+        summary="group DRO over ten bins of normalised episode time (Sagawa et al., ICLR 2020)",
     ),
 ):
     WEIGHTINGS.register(_w.name, _w)

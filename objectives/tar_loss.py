@@ -5,7 +5,9 @@ The inner objective (any ``LossModule`` built with ``reduction="none"``, e.g. to
 ``TARLoss`` reduces any trailing event dimensions (action dims, chunk horizon) to ``[B, L]``,
 weights the steps of each segment with a registered weighting (``"tar"`` by default, the
 uniform mean, the paper's controls and the baselines from the literature by name) and returns
-the segment loss of Eq. 2, averaged over the segments that have at least one valid step.
+the segment loss of Eq. 2, averaged over the segments that have at least one valid step. A
+stateful weighting (``dro_time``) keeps its state in a buffer of ``TARLoss``, updated on each
+training step.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.distributed as torch_dist
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
@@ -22,6 +25,8 @@ from torchrl.objectives import LossModule
 from .schedule import MixSchedule
 from .supervision import perturb_target
 from .weighting import (
+    DEFAULT_DRO_BINS,
+    DEFAULT_DRO_ETA,
     DEFAULT_EPS,
     DEFAULT_FOCAL_BETA,
     DEFAULT_GAMMA,
@@ -41,6 +46,12 @@ __all__ = ["COMPILE_MODES", "NONFINITE_MODES", "TARLoss", "compiles_weights", "s
 NONFINITE_MODES = ("raise", "propagate")
 #: ``compile_weights`` of :class:`TARLoss`: ``auto`` (on CUDA, when triton is installed), ``always``, ``never``.
 COMPILE_MODES = ("auto", "always", "never")
+
+
+def _sum_over_ranks(stats: Tensor) -> Tensor:
+    """``stats`` summed over the ranks of the process group (the state update's batch statistics)."""
+    torch_dist.all_reduce(stats)
+    return stats
 
 
 def compiles_weights(compile_weights: str, device: torch.device) -> bool:
@@ -87,7 +98,7 @@ class TARLoss(LossModule):
             ``"uniform"`` (Eq. 1), a control: ``"shuffle"``, ``"random"``, ``"invert"``,
             ``"perturb_high"``, ``"perturb_low"``, or a baseline from the literature
             (:mod:`~tar_rl.objectives.baselines`): ``"tilted"``, ``"truncate"``, ``"keyframe"``,
-            ``"focal"``.
+            ``"focal"``, ``"dro_time"``.
 
     Keyword Args:
         gamma, w_max, eps, cap: TAR's hyper-parameters, see :func:`tar_rl.tar_weights`
@@ -97,6 +108,9 @@ class TARLoss(LossModule):
         keyframe_fraction, keyframe_factor: ``f`` in ``(0, 1)`` (default ``0.3``) and ``K >= 1``
             (default ``5.0``) of ``keyframe``.
         focal_beta: ``beta`` of ``focal``, ``>= 0``; default ``1.0``.
+        dro_eta, dro_bins: the step size ``eta > 0`` (default ``0.01``) and the number of bins of
+            normalised episode time ``G >= 1`` (default ``10``) of ``dro_time``
+            (:func:`~tar_rl.objectives.dro_time_weights`).
         schedule (MixSchedule): when TAR (and every other weighting) is mixed in; default: fully
             on from the first step. Before ``schedule.start`` every weighting is the uniform mean.
         loss_key (NestedKey): the inner output holding the per-step loss; default: its only
@@ -116,8 +130,9 @@ class TARLoss(LossModule):
             ``torch.compile``: ``"auto"`` (default) on CUDA when triton is available, ``"always"``, ``"never"``.
             On a GPU the weighting of a ``[B, L]`` batch is some thirty tiny kernels, whose
             launches cost about 0.5 ms a step; compiled, they fuse into a few. The compiled
-            weights equal the eager ones up to float rounding. Uniform and the stochastic
-            controls always run eagerly (nothing to fuse; random generators).
+            weights equal the eager ones up to float rounding. Uniform, the stochastic
+            controls and the weightings that read time or keep a state (``dro_time``) always run
+            eagerly (nothing to fuse; random generators; checks of the time input and a state update).
         nonfinite (str): what a NaN or infinite per-step loss at a valid step does: ``"raise"``
             (default) a ``ValueError`` from the weighting; ``"propagate"`` makes ``loss_tar``
             non-finite (the weights are computed as if that loss were 0; it still enters Eq. 2),
@@ -127,7 +142,22 @@ class TARLoss(LossModule):
     Input: a TensorDict of batch shape ``[B, L]`` (segments x steps), holding what the inner
     loss reads and the validity mask at ``tensor_keys.valid`` (``True`` on real steps,
     ``False`` on padding; default ``("collector", "mask")``, which
-    ``SliceSampler(pad_output=True)`` writes; if absent, every step is valid).
+    ``SliceSampler(pad_output=True)`` writes; if absent, every step is valid). A weighting that
+    reads time (``dro_time``) also needs each step's index in its episode at ``tensor_keys.step``
+    and the episode's length at ``tensor_keys.episode_length`` (integer ``[B, L]``; the dataset's
+    ``step`` and the ``episode_length`` that :class:`~tar_rl.data.SegmentSampler` writes); they are
+    then part of :attr:`in_keys` and :attr:`time_keys`.
+
+    State: ``schedule_step`` and, for a stateful weighting, ``weighting_state`` (``dro_time``: the
+    ``[G]`` log group weights, float64, uniform at first) are buffers, and the generator of the
+    stochastic controls is extra state: all are in ``state_dict()``, so a resumed run continues
+    them exactly. ``weighting_state`` moves only on a training step (training mode with gradients
+    enabled, as the schedule does); an evaluation-mode or ``no_grad`` call computes the weights
+    from the state this batch would give but leaves the state as it was. In a distributed job
+    (``torch.distributed`` initialised) the batch statistics of the update (``dro_time``: per-bin
+    loss sums and valid counts) are summed over the ranks on a training step, so that every rank
+    holds the same state: every rank must then call the loss on every training step, as DDP's
+    backward already requires.
 
     Output keys: ``loss_tar`` (the only differentiable entry) and the detached diagnostics
     ``tar_mix`` (alpha), ``weight_max``, ``weight_ess`` (mean over segments of the effective
@@ -164,11 +194,17 @@ class TARLoss(LossModule):
                 the per-step loss, ``True`` on real elements (e.g. the valid part of an action
                 chunk near the end of a trajectory). The per-step loss is the mean over the
                 valid elements. Defaults to ``None``: a plain mean over the event dims.
+            step (NestedKey): integer ``[B, L]``, each step's index in its episode; read by the
+                weightings that read time (``dro_time``). Defaults to ``"step"``.
+            episode_length (NestedKey): integer ``[B, L]``, the length of each step's episode;
+                read with ``step``. Defaults to ``"episode_length"``.
         """
 
         valid: NestedKey = ("collector", "mask")
         action: NestedKey = "action"
         event_valid: NestedKey | None = None
+        step: NestedKey = "step"
+        episode_length: NestedKey = "episode_length"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -190,6 +226,8 @@ class TARLoss(LossModule):
         keyframe_fraction: float = DEFAULT_KEYFRAME_FRACTION,
         keyframe_factor: float = DEFAULT_KEYFRAME_FACTOR,
         focal_beta: float = DEFAULT_FOCAL_BETA,
+        dro_eta: float = DEFAULT_DRO_ETA,
+        dro_bins: int = DEFAULT_DRO_BINS,
         schedule: MixSchedule | None = None,
         loss_key: NestedKey | None = None,
         perturb_fraction: float = 0.25,
@@ -232,6 +270,8 @@ class TARLoss(LossModule):
             keyframe_fraction=keyframe_fraction,
             keyframe_factor=keyframe_factor,
             focal_beta=focal_beta,
+            dro_eta=dro_eta,
+            dro_bins=dro_bins,
         )
         if self.weighting.check is not None:
             self.weighting.check(self.weighting_params)
@@ -244,6 +284,8 @@ class TARLoss(LossModule):
         self.compile_weights = compile_weights
         self.nonfinite = nonfinite
         self.register_buffer("schedule_step", torch.zeros((), dtype=torch.long))
+        if self.weighting.initial_state is not None:
+            self.register_buffer("weighting_state", self.weighting.initial_state(self.weighting_params))
         self._generator = torch.Generator().manual_seed(seed)
         self._compiled_weights = None  # the weighting through torch.compile, built at its first use
         target = getattr(inner, "target_key", None)
@@ -261,10 +303,18 @@ class TARLoss(LossModule):
 
     @property
     def in_keys(self) -> list[NestedKey]:
-        keys = [*self.inner.in_keys, self.tensor_keys.valid]
+        keys = [*self.inner.in_keys, self.tensor_keys.valid, *self.time_keys]
         if self.tensor_keys.event_valid is not None:
             keys.append(self.tensor_keys.event_valid)
         return list(dict.fromkeys(keys))
+
+    @property
+    def time_keys(self) -> tuple[NestedKey, ...]:
+        """The keys of each step's position in its episode (``step``, ``episode_length``) when the
+        weighting reads time; empty otherwise."""
+        if not self.weighting.reads_time:
+            return ()
+        return (self.tensor_keys.step, self.tensor_keys.episode_length)
 
     def __getstate__(self) -> dict:
         state = super().__getstate__()
@@ -316,12 +366,23 @@ class TARLoss(LossModule):
             tensordict = perturb_target(tensordict, self.tensor_keys.action, chosen, self.perturb_scale, generator)
             diagnostics["perturbed_fraction"] = chosen.sum() / valid.sum().clamp_min(1)
 
+        training_step = self.training and torch.is_grad_enabled()
+        inputs = self._time_inputs(tensordict) if spec.reads_time else {}
+        if spec.initial_state is not None:
+            inputs["state"] = self.weighting_state
+            distributed = training_step and torch_dist.is_available() and torch_dist.is_initialized()
+            inputs["reduce"] = _sum_over_ranks if distributed else None
+
         out = self.inner(tensordict)
         key = self._loss_entry(out)
         losses = self._step_losses(out, key, tensordict)
         # The weights are stop-gradient (Eq. 3): the weighting sees detached losses.
         scored = self._scored(losses.detach(), valid)
-        weights = self._weight_function(losses.device)(scored, valid, self.weighting_params, mix, generator)
+        weights = self._weight_function(losses.device)(scored, valid, self.weighting_params, mix, generator, **inputs)
+        if spec.initial_state is not None:
+            weights, state = weights
+            if training_step:
+                self.weighting_state.copy_(state)
         loss = segment_mean(losses, weights, valid)
         for name, value in self._extra_losses(out, key).items():
             loss = loss + value
@@ -345,7 +406,7 @@ class TARLoss(LossModule):
             if self.return_weights:
                 result["weights"] = weights.detach()
 
-        if self.auto_step and self.training and torch.is_grad_enabled():
+        if self.auto_step and training_step:
             self.schedule_step.add_(1)
         return TensorDict(result, batch_size=[])
 
@@ -364,11 +425,35 @@ class TARLoss(LossModule):
         """The weighting's function, compiled where ``compile_weights`` says so."""
         spec = self.weighting
         eager = spec.stochastic or spec.perturb is not None or spec.name == "uniform"
+        eager = eager or spec.reads_time or spec.initial_state is not None
         if eager or not compiles_weights(self.compile_weights, device):
             return spec.weights
         if self._compiled_weights is None:
             self._compiled_weights = torch.compile(spec.weights, dynamic=False)
         return self._compiled_weights
+
+    def _time_inputs(self, tensordict: TensorDictBase) -> dict[str, Tensor]:
+        """``step`` and ``episode_length``, ``[B, L]`` integer tensors, for a weighting that reads time."""
+        batch = tensordict.batch_size
+        inputs = {}
+        for name, key in (("step", self.tensor_keys.step), ("episode_length", self.tensor_keys.episode_length)):
+            value = tensordict.get(key, None)
+            if value is None:
+                raise KeyError(
+                    f"the {self.weighting.name} weighting reads each step's position in its episode, but the batch "
+                    f"has no {key!r} entry (the {name} of every step): sample it with the segments "
+                    f"(SegmentSampler writes 'episode_length'; the dataset stores 'step'), or say where it is "
+                    f"with TARLoss.set_keys({name}=...)."
+                )
+            while value.ndim > len(batch) and value.shape[-1] == 1:
+                value = value.squeeze(-1)
+            if value.shape != batch or value.is_floating_point() or value.dtype == torch.bool:
+                raise ValueError(
+                    f"the {name} entry {key!r} must be an integer tensor of the batch shape {list(batch)}, "
+                    f"got {value.dtype} {list(value.shape)}."
+                )
+            inputs[name] = value
+        return inputs
 
     def _read_valid(self, tensordict: TensorDictBase) -> Tensor:
         batch = tensordict.batch_size

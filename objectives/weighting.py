@@ -1,6 +1,6 @@
 """Per-step weightings of segment losses: TAR (paper Eqs. 3-8) and its control variants.
 
-The baselines from the literature (tilted, truncate, keyframe, focal) live in
+The baselines from the literature (tilted, truncate, keyframe, focal, dro_time) live in
 :mod:`~tar_rl.objectives.baselines` and share this module's conventions, parameters and registry.
 
 Every function here is pure: it reads ``losses`` and ``valid`` and returns a new tensor of
@@ -35,6 +35,8 @@ from tar_rl.registry import Registry
 
 __all__ = [
     "CAP_MODES",
+    "DEFAULT_DRO_BINS",
+    "DEFAULT_DRO_ETA",
     "DEFAULT_EPS",
     "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
@@ -76,6 +78,11 @@ DEFAULT_KEYFRAME_FRACTION = 0.3
 DEFAULT_KEYFRAME_FACTOR = 5.0
 #: Exponent ``beta`` of the ``focal`` baseline.
 DEFAULT_FOCAL_BETA = 1.0
+#: Step size ``eta`` of the ``dro_time`` baseline's group weights: 0.01, the step size of Sagawa et al.
+#: (ICLR 2020) for their group DRO experiments.
+DEFAULT_DRO_ETA = 0.01
+#: Groups of the ``dro_time`` baseline: bins of normalised episode time.
+DEFAULT_DRO_BINS = 10
 
 CapMode = Literal["paper", "exact"]
 CAP_MODES: tuple[str, ...] = ("paper", "exact")
@@ -108,6 +115,10 @@ class WeightingParams:
         keyframe_fraction: ``f`` of ``keyframe``, in ``(0, 1)``. Default ``0.3``.
         keyframe_factor: ``K`` of ``keyframe``, a finite number ``>= 1``. Default ``5.0``.
         focal_beta: ``beta`` of ``focal``, a finite number ``>= 0``. Default ``1.0``.
+        dro_eta: ``eta`` of ``dro_time``, the step size of its group weights, a finite number ``> 0``.
+            Default ``0.01``.
+        dro_bins: ``G`` of ``dro_time``, the number of bins of normalised episode time, an integer
+            ``>= 1``. Default ``10``.
     """
 
     gamma: float = DEFAULT_GAMMA
@@ -119,6 +130,8 @@ class WeightingParams:
     keyframe_fraction: float = DEFAULT_KEYFRAME_FRACTION
     keyframe_factor: float = DEFAULT_KEYFRAME_FACTOR
     focal_beta: float = DEFAULT_FOCAL_BETA
+    dro_eta: float = DEFAULT_DRO_ETA
+    dro_bins: int = DEFAULT_DRO_BINS
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gamma, (int, float)) and math.isfinite(self.gamma) and self.gamma > 0):
@@ -139,10 +152,14 @@ class WeightingParams:
             ("keyframe_fraction", lambda v: 0 < v < 1, "a number in (0, 1)"),
             ("keyframe_factor", lambda v: v >= 1, "a finite number >= 1"),
             ("focal_beta", lambda v: v >= 0, "a finite number >= 0"),
+            ("dro_eta", lambda v: v > 0, "a finite number > 0"),
         ):
             value = getattr(self, name)
             if not (_finite_number(value) and ok(value)):
                 raise ValueError(f"{name} must be {rule}, got {value!r}.")
+        bins = self.dro_bins
+        if not (isinstance(bins, int) and not isinstance(bins, bool) and bins >= 1):
+            raise ValueError(f"dro_bins must be an integer >= 1, got {bins!r}.")
 
 
 def check_step_losses(losses: Tensor, valid: Tensor) -> None:
@@ -472,7 +489,13 @@ class Weighting:
 
     Attributes:
         name: the registry name a recipe uses.
-        weights: ``(losses, valid, params, mix, generator) -> weights``, pure.
+        weights: ``(losses, valid, params, mix, generator, **inputs) -> weights``, pure. ``inputs`` is
+            empty unless the fields below say otherwise: a weighting that ``reads_time`` also gets
+            ``step`` and ``episode_length`` (integer tensors shaped like ``losses``: each step's index in
+            its episode and that episode's length); a stateful one (``initial_state`` set) also gets
+            ``state`` (its current state, not modified) and ``reduce`` (``None``, or a function that
+            sums a tensor over the ranks of a distributed job, for the batch statistics its update
+            reads) and returns ``(weights, new_state)``.
         perturb: ``"high"``/``"low"`` for the supervision-perturbation controls: the objective
             corrupts the expert actions of the steps :func:`perturb_mask` selects and averages
             uniformly; ``None`` otherwise.
@@ -480,14 +503,22 @@ class Weighting:
         summary: one line for listings and error messages.
         check: ``(params) -> None``, raises a ``ValueError`` naming the parameter when
             ``params`` (valid in general) do not suit this weighting; ``None``: all do.
+        reads_time: whether ``weights`` reads each step's position in its episode (``step``,
+            ``episode_length``).
+        initial_state: ``(params) -> state``, the state a stateful weighting starts from (a tensor
+            that :class:`~tar_rl.objectives.TARLoss` holds as a buffer, so that it is part of its
+            ``state_dict()``, and replaces with ``new_state`` after each training step); ``None``
+            for a weighting without state.
     """
 
     name: str
-    weights: Callable[[Tensor, Tensor, WeightingParams, float | Tensor, torch.Generator | None], Tensor]
+    weights: Callable[..., Tensor | tuple[Tensor, Tensor]]
     perturb: Literal["high", "low"] | None = None
     stochastic: bool = False
     summary: str = ""
     check: Callable[[WeightingParams], None] | None = None
+    reads_time: bool = False
+    initial_state: Callable[[WeightingParams], Tensor] | None = None
 
 
 def _param_kwargs(params: WeightingParams) -> dict:

@@ -9,6 +9,8 @@ TAR needs no communication of its own: its weights are computed within each segm
 segments are whole segments, so each rank weights its own share of the batch exactly as a single
 process would weight the same segments. DistributedDataParallel averages the gradients over ranks;
 with the same number of segments per rank that is the gradient of the mean over all segments.
+The one weighting with a state learnt across batches, ``dro_time``, sums its batch statistics over
+the ranks inside ``TARLoss`` on each training step, so that every rank holds the same state.
 """
 
 from __future__ import annotations

@@ -41,6 +41,8 @@ def trajectories() -> TensorDict:
                     "observation": torch.randn(n, OBS, generator=g),
                     "action": torch.rand(n, ACT, generator=g) * 2 - 1,
                     "episode": torch.full((n,), episode),
+                    "step": torch.arange(n),  # with episode_length: what dro_time reads
+                    "episode_length": torch.full((n,), n),
                     ("next", "done"): done,
                 },
                 [n],

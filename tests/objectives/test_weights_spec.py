@@ -640,6 +640,7 @@ NAMES = [
     "truncate",
     "keyframe",
     "focal",
+    "dro_time",
 ]
 
 
@@ -663,7 +664,17 @@ def test_unknown_weighting_lists_names():
 @pytest.mark.parametrize("name", NAMES)
 def test_every_weighting_is_a_unit_mean_weighting(name):
     losses, valid = padded_batch()
-    w = WEIGHTINGS[name].weights(losses, valid, WeightingParams(), 1.0, torch.Generator().manual_seed(0))
+    spec, params = WEIGHTINGS[name], WeightingParams()
+    inputs = {}
+    if spec.reads_time:  # the segments are steps 0..5, 10..15 and 20..25 of episodes of 30 steps
+        inputs["step"] = torch.arange(6) + torch.tensor([[0], [10], [20]])
+        inputs["episode_length"] = torch.full((3, 6), 30)
+    if spec.initial_state is not None:
+        inputs["state"] = spec.initial_state(params)
+    w = spec.weights(losses, valid, params, 1.0, torch.Generator().manual_seed(0), **inputs)
+    if spec.initial_state is not None:
+        w, state = w
+        assert state.shape == inputs["state"].shape and float(state.exp().sum()) == pytest.approx(1.0)
     assert w.shape == losses.shape and w.dtype == losses.dtype
     assert torch.isfinite(w).all()
     assert (w >= 0).all()
