@@ -6,7 +6,7 @@ before anything runs. Config groups (``group=option`` on the command line):
 
 * ``objective``: one option per registered weighting (``tar_rl.WEIGHTINGS``: ``uniform``, ``tar``,
   ``shuffle``, ``random``, ``invert``, ``perturb_high``, ``perturb_low``, and the baselines
-  ``tilted``, ``truncate``, ``keyframe``, ``focal``), all of type
+  ``tilted``, ``truncate``, ``keyframe``, ``focal``, ``dro_time``), all of type
   :class:`ObjectiveConfig`; the option sets ``objective.name``.
 * ``policy``: one option per registered head (``tar_rl.policies.POLICIES``), each of its own
   config dataclass.
@@ -90,6 +90,10 @@ class ObjectiveConfig:
             loss from the top, up-weighted (``floor(f * M + 1/2)`` steps, at least 1; after Wen et al., ICML 2021).
         keyframe_factor: for ``keyframe``: how many times the others' weight those steps get (``K >= 1``).
         focal_beta: for ``focal``: the exponent ``beta >= 0`` of ``(loss / mean loss) ** beta``.
+        dro_eta: for ``dro_time`` (group DRO over bins of normalised episode time, Sagawa et al., ICLR 2020):
+            the step size ``eta > 0`` of the group weights, ``q_g <- q_g * exp(eta * mean loss of bin g / mean
+            loss of the batch)`` each step, renormalised (0.01: Sagawa et al.'s step size).
+        dro_bins: for ``dro_time``: the number ``G >= 1`` of bins of normalised episode time (the groups).
         compile: ``torch.compile`` the weighting (``tar``, ``invert``, the baselines): ``auto`` (on CUDA with
             triton: a GPU step otherwise pays ~0.5 ms of tiny kernel launches for it), ``always``
             or ``never``. Not part of a run's identity (the weights agree up to float rounding).
@@ -110,6 +114,8 @@ class ObjectiveConfig:
     keyframe_fraction: float = 0.3
     keyframe_factor: float = 5.0
     focal_beta: float = 1.0
+    dro_eta: float = 0.01
+    dro_bins: int = 10
     compile: str = "auto"
 
 

@@ -147,8 +147,10 @@ class Trainer:
             decay = get_ema_multi_avg_fn(cfg.optim.ema)
             self.ema = AveragedModel(self.policy.actor, multi_avg_fn=decay, use_buffers=True)
         self.generator = torch.Generator().manual_seed(cfg.seed)
+        # What the head's loss reads, and each step's position in its episode for a weighting that reads time.
+        keys = None if self.policy.keys is None else (*self.policy.keys, *self.objective.time_keys)
         self.sampler = self.dataset.segments(
-            cfg.data.batch_segments, cfg.data.slice_len, keys=self.policy.keys, generator=self.generator
+            cfg.data.batch_segments, cfg.data.slice_len, keys=keys, generator=self.generator
         )
         share = cfg.data.batch_segments // dist.world
         self.rows = slice(dist.rank * share, (dist.rank + 1) * share)

@@ -270,7 +270,15 @@ def _check_objective_numbers(obj: ObjectiveConfig) -> None:
         )
     if not (math.isfinite(obj.eps) and obj.eps > 0):
         raise ConfigError(f"objective.eps must be a finite number > 0, got {obj.eps}")
-    baselines = ("tilt", "truncate_fraction", "keyframe_fraction", "keyframe_factor", "focal_beta")
+    baselines = (
+        "tilt",
+        "truncate_fraction",
+        "keyframe_fraction",
+        "keyframe_factor",
+        "focal_beta",
+        "dro_eta",
+        "dro_bins",
+    )
     try:  # the baselines' rules live in WeightingParams; its message names the parameter
         WeightingParams(**{key: getattr(obj, key) for key in baselines})
     except ValueError as err:

@@ -51,7 +51,8 @@ def make_demonstrations(n: int, generator: torch.Generator, first_episode: int =
 
     Observation (8): gripper xy, object xy, goal xy, grip state, holding flag.
     Action (3): xy velocity in [-1, 1] and the grip command (-1 open, +1 closed).
-    Each step also records ``contact`` (True at the step the grip closes).
+    Each step also records ``contact`` (True at the step the grip closes), its index ``step`` in its
+    demonstration and the demonstration's length ``episode_length``.
     """
     episodes = []
     for e in range(n):
@@ -82,6 +83,8 @@ def make_demonstrations(n: int, generator: torch.Generator, first_episode: int =
                 {
                     **{k: torch.stack(v) for k, v in rows.items()},
                     "episode": torch.full((t,), first_episode + e),
+                    "step": torch.arange(t),
+                    "episode_length": torch.full((t,), t),  # with step: the position in the episode (dro_time)
                     ("next", "done"): done,
                 },
                 [t],

@@ -22,11 +22,12 @@ from .format import (
     steps_tensordict,
     write_dataset,
 )
-from .sampler import VALID_KEY, SegmentSampler
+from .sampler import EPISODE_LENGTH_KEY, VALID_KEY, SegmentSampler
 
 __all__ = [
     "BUFFER_DIR",
     "DIGEST_FILE",
+    "EPISODE_LENGTH_KEY",
     "FORMAT_VERSION",
     "METADATA_FILE",
     "VALID_KEY",

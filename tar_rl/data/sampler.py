@@ -10,9 +10,10 @@ from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer
 
 from .checks import positive_int
 
-__all__ = ["VALID_KEY", "SegmentSampler"]
+__all__ = ["EPISODE_LENGTH_KEY", "VALID_KEY", "SegmentSampler"]
 
 VALID_KEY = ("collector", "mask")  # the [B, L] validity of a sampled segment, True on real steps
+EPISODE_LENGTH_KEY = "episode_length"  # the [B, L] length of each sampled step's episode
 
 
 class _OneGatherSliceSampler(SliceSampler):
@@ -50,6 +51,12 @@ class SegmentSampler:
     bool validity mask, True on real steps (all True when no segment needed padding). The stored
     ``("next", "truncated")`` is returned as stored (the sampler's slice-end marking is off).
 
+    ``episode_length`` (``[B, L]`` int64) is the number of steps of each step's episode, so that with
+    the stored ``step`` a step's normalised time in its episode is known (what the ``dro_time``
+    weighting reads); ``SliceSampler`` gives no such entry. It is looked up in a table of episode
+    lengths counted once here (``torch.bincount`` of the stored ``episode``, the ids ``0 .. E-1``
+    of the dataset format; any ids ``>= 0`` work).
+
     The buffer's ``TensorStorage`` holds plain-tensor views of the dataset's memory maps (zero
     copy): indexing a ``MemoryMappedTensor`` goes through a Python override per entry, and
     ``SliceSampler`` indexes the storage twice per batch, which made sampling ~40% slower; the
@@ -61,7 +68,8 @@ class SegmentSampler:
         batch_segments: ``B``.
         slice_len: ``L``.
         keys: the entries to sample (nested keys as tuples); default all. ``"episode"`` is
-            always included. Fewer entries sample faster.
+            always included; ``"episode_length"`` is always written (it may be named here, it is
+            not stored). Fewer entries sample faster.
         generator: optional ``torch.Generator`` for reproducible sampling.
     """
 
@@ -77,8 +85,13 @@ class SegmentSampler:
         self.slice_len = positive_int("slice_len", slice_len)
         self.dataset_storage = storage  # keeps the memory maps alive
         stored = storage._storage[: len(storage)]
+        episode = stored.get("episode").as_subclass(torch.Tensor).long().reshape(-1)
+        if episode.numel() and int(episode.min()) < 0:
+            raise ValueError(f"the dataset's episode ids must be >= 0, got {int(episode.min())}")
+        # episode id -> its number of steps (all of an episode's steps are stored)
+        self.episode_lengths = torch.bincount(episode)
         if keys is not None:
-            keys = list(dict.fromkeys([*keys, "episode"]))
+            keys = [k for k in dict.fromkeys([*keys, "episode"]) if k != EPISODE_LENGTH_KEY]
             available = set(stored.keys(True, True))
             unknown = [k for k in keys if k not in available]
             if unknown:
@@ -101,11 +114,13 @@ class SegmentSampler:
         )
 
     def sample(self) -> TensorDict:
-        """A ``[B, L]`` TensorDict of segments with the bool mask at ``("collector", "mask")``."""
+        """A ``[B, L]`` TensorDict of segments with the bool mask at ``("collector", "mask")`` and
+        each step's ``episode_length``."""
         batch = self.buffer.sample().reshape(self.batch_segments, self.slice_len)
         if VALID_KEY not in batch.keys(True):
             # SliceSampler writes the mask only when some slice needed padding.
             batch.set(VALID_KEY, torch.ones(batch.shape, dtype=torch.bool))
+        batch.set(EPISODE_LENGTH_KEY, self.episode_lengths[batch.get("episode").long()])
         return batch
 
     def __iter__(self) -> Iterator[TensorDict]:

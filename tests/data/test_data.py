@@ -409,6 +409,7 @@ def test_segments(built, slice_len):
             step = batch["step"][i]
             assert (ep[:n_valid] == ep[0]).all()
             assert torch.equal(step[:n_valid], step[0] + torch.arange(n_valid))
+            assert (batch["episode_length"][i] == lengths[int(ep[0])]).all()
             if n_valid < slice_len:
                 saw_padding = True
                 # cut at the episode's end: the last valid step is the episode's last
@@ -433,7 +434,14 @@ def test_segments_feed_tar_loss(built):
 def test_segments_key_subset(built):
     _, ds = built
     batch = ds.segments(4, 8, keys=["observation", ("next", "done")]).sample()
-    assert set(batch.keys(True, True)) == {"observation", ("next", "done"), "episode", "index", ("collector", "mask")}
+    assert set(batch.keys(True, True)) == {
+        "observation",
+        ("next", "done"),
+        "episode",
+        "index",
+        ("collector", "mask"),
+        "episode_length",  # always written, not stored
+    }
     with pytest.raises(KeyError, match="not_there"):
         ds.segments(4, 8, keys=["not_there"])
 
@@ -465,7 +473,7 @@ def test_segments_equal_torchrls_slice_sampler(built):
         expected = reference.sample().reshape(32, 16)
         if ("collector", "mask") not in expected.keys(True):  # torchrl writes it only when a slice is padded
             expected.set(("collector", "mask"), torch.ones(32, 16, dtype=torch.bool))
-        assert set(got.keys(True, True)) == set(expected.keys(True, True))
+        assert set(got.keys(True, True)) == set(expected.keys(True, True)) | {"episode_length"}  # ours adds it
         for key in expected.keys(True, True):
             assert torch.equal(got.get(key), expected.get(key)), key
 

@@ -34,11 +34,15 @@ from tar_rl.runs import load_checkpoint
 B, L = 8, 6
 
 
-def _objective(seed: int = 0) -> TARLoss:
+WEIGHTINGS = ("tar", "dro_time")  # TAR weights each segment alone; dro_time's state is learnt from the whole batch
+
+
+def _objective(weighting: str = "tar", seed: int = 0) -> TARLoss:
     torch.manual_seed(seed)
     net = torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.Tanh(), torch.nn.Linear(16, 2))
     actor = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
-    return TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), "tar", gamma=1.0, w_max=3.0)
+    kwargs = {"dro_eta": 1.0, "dro_bins": 3}  # read by dro_time only
+    return TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), weighting, gamma=1.0, w_max=3.0, **kwargs)
 
 
 def _batch() -> TensorDict:
@@ -49,6 +53,9 @@ def _batch() -> TensorDict:
         {
             "observation": torch.randn(B, L, 5, generator=g),
             "action": torch.randn(B, L, 2, generator=g),
+            # segment i: steps 2i .. 2i+5 of an episode of 20 steps (what dro_time reads)
+            "step": 2 * torch.arange(B)[:, None] + torch.arange(L),
+            "episode_length": torch.full((B, L), 20),
             ("collector", "mask"): valid,
         },
         [B, L],
@@ -62,14 +69,18 @@ def _rank_worker(rank: int, world: int, store_path: str, out_dir: str) -> None:
     store = torch_dist.FileStore(store_path, world)
     torch_dist.init_process_group("gloo", store=store, rank=rank, world_size=world, timeout=timedelta(seconds=120))
     try:
-        objective = _objective()
-        model = data_parallel(objective)
-        share = B // world
-        out = model(_batch()[rank * share : (rank + 1) * share])
-        out["loss_tar"].backward()
-        grads = {n: p.grad.clone() for n, p in objective.named_parameters() if p.grad is not None}
-        torch.save({"loss": out["loss_tar"].detach(), "grads": grads}, Path(out_dir) / f"rank{rank}.pt")
-        del model, out
+        results = {}
+        for weighting in WEIGHTINGS:
+            objective = _objective(weighting)
+            model = data_parallel(objective)
+            share = B // world
+            out = model(_batch()[rank * share : (rank + 1) * share])
+            out["loss_tar"].backward()
+            grads = {n: p.grad.clone() for n, p in objective.named_parameters() if p.grad is not None}
+            state = objective.state_dict().get("weighting_state")
+            results[weighting] = {"loss": out["loss_tar"].detach(), "grads": grads, "state": state}
+            del model, out
+        torch.save(results, Path(out_dir) / f"rank{rank}.pt")
         close_group()  # the normal path: see tar_rl.distributed.close_group
     finally:
         if torch_dist.is_initialized():
@@ -100,18 +111,30 @@ def _join_after_results(context, results, limit: float = 300.0, grace: float = 3
 def test_two_ranks_give_the_loss_and_gradient_of_the_concatenated_batch(tmp_path):
     context = mp.spawn(_rank_worker, args=(2, str(tmp_path / "store"), str(tmp_path)), nprocs=2, join=False)
     _join_after_results(context, [tmp_path / f"rank{r}.pt" for r in range(2)])
-    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2)]
-    single = _objective()
-    out = single(_batch())
-    out["loss_tar"].backward()
-    # Each rank holds 4 whole segments: TAR weights each segment alone, so the mean of the ranks'
-    # losses is the loss on the 8 segments, and DDP's averaged gradient is its gradient.
-    assert (ranks[0]["loss"] + ranks[1]["loss"]) / 2 == pytest.approx(float(out["loss_tar"].detach()), rel=1e-6)
-    for name, p in single.named_parameters():
-        if p.grad is None:
-            continue
-        for r in ranks:
-            torch.testing.assert_close(r["grads"][name], p.grad, rtol=1e-5, atol=1e-7)
+    results = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2)]
+    singles = {}
+    for weighting in WEIGHTINGS:
+        ranks = [r[weighting] for r in results]
+        single = singles[weighting] = _objective(weighting)
+        out = single(_batch())
+        out["loss_tar"].backward()
+        # Each rank holds 4 whole segments: TAR weights each segment alone, so the mean of the ranks'
+        # losses is the loss on the 8 segments, and DDP's averaged gradient is its gradient. dro_time's
+        # group weights are updated from the statistics of all 8 segments (summed over the ranks), so
+        # every rank weights its segments with the group weights of the single process.
+        expected = float(out["loss_tar"].detach())
+        assert (ranks[0]["loss"] + ranks[1]["loss"]) / 2 == pytest.approx(expected, rel=1e-6), weighting
+        for name, p in single.named_parameters():
+            if p.grad is None:
+                continue
+            for r in ranks:
+                torch.testing.assert_close(r["grads"][name], p.grad, rtol=1e-5, atol=1e-7)
+    state = singles["dro_time"].weighting_state
+    for r in results:
+        torch.testing.assert_close(r["dro_time"]["state"], state, rtol=1e-12, atol=1e-12)
+    alone = _objective("dro_time")
+    alone(_batch()[:4])  # rank 0's share alone would move the group weights elsewhere
+    assert not torch.allclose(alone.weighting_state, state)
 
 
 def test_shards_of_an_evaluation_make_the_whole_evaluation():

@@ -72,6 +72,7 @@ def test_every_registered_objective_and_policy_builds_from_defaults(objective, p
             "observation_history_valid": history_valid,
             "episode": torch.arange(3)[:, None].expand(3, 5).clone(),
             "step": torch.arange(5).expand(3, 5).clone(),
+            "episode_length": torch.full((3, 5), 5),
             ("collector", "mask"): torch.tensor([[True] * 5, [True] * 5, [True] * 3 + [False] * 2]),
         },
         [3, 5],
@@ -150,6 +151,11 @@ def test_unknown_keys_and_options_are_refused_at_composition(override, error, na
         (["objective.keyframe_factor=0.5"], "objective.keyframe_factor"),
         (["objective.focal_beta=-1"], "objective.focal_beta"),
         (["objective=focal", "objective.w_max=0.5"], "objective.w_max >= 1"),
+        (["objective.dro_eta=0"], "objective.dro_eta must be a finite number > 0"),
+        (["objective.dro_eta=-0.5"], "objective.dro_eta must be a finite number > 0"),
+        (["objective.dro_eta=nan"], "objective.dro_eta must be a finite number > 0"),
+        (["objective.dro_eta=inf"], "objective.dro_eta must be a finite number > 0"),
+        (["objective.dro_bins=0"], "objective.dro_bins must be an integer >= 1"),
         (["optim.decay=step"], "optim.decay"),
         (["optim.ema=1.0"], "optim.ema"),
         (["optim.steps=0"], "optim.steps"),
@@ -164,6 +170,18 @@ def test_bad_values_are_refused_before_any_work(tmp_path, overrides, named):
         train(config)
     assert not (tmp_path / "data").exists()  # nothing was collected
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("value", [1.5, True])
+def test_dro_bins_must_be_an_integer(value):
+    # Hydra's typed config refuses a non-integer at composition; a plain dict of settings (a saved run's) is
+    # refused by the validation, naming the setting.
+    with pytest.raises(ConfigCompositionException):
+        compose_config(f"objective.dro_bins={str(value).lower()}")
+    config = compose_config("objective=dro_time")
+    config["objective"]["dro_bins"] = value
+    with pytest.raises(ConfigError, match=r"^objective\.dro_bins must be an integer >= 1"):
+        validate(config)
 
 
 @pytest.mark.parametrize("override", ["seed=-1", "data.seed=-1", "eval.seed=-1"])
@@ -304,6 +322,54 @@ def test_each_baseline_trains_through_the_recipe(tmp_path, data_root, objective)
     train_rows = metrics[metrics.phase == "train"].pivot(index="step", columns="name", values="value")
     assert (train_rows.tar_mix == 1).all() and train_rows.loss.notna().all()
     assert (train_rows.weight_max > 1).all()  # the baseline reweights the steps from the first one
+
+
+def test_dro_time_trains_through_the_recipe_and_resumes_exactly(tmp_path, data_root, monkeypatch):
+    # The sampler draws each step's `step` (the MLP head reads no such entry) and writes `episode_length`; the
+    # group weights are part of the objective's state in the checkpoint, so a resumed run continues them exactly.
+    overrides = (
+        "objective=dro_time",
+        "objective.start=0",
+        "objective.ramp=0",
+        "objective.dro_eta=0.5",
+        "objective.dro_bins=4",
+        "eval.rollouts=0",
+        "diagnostics.heldout_demos=0",
+    )
+    run_dir = train(tiny(tmp_path / "whole", data_root, *overrides))
+    assert run_dir.name.startswith("dro_time-mlp-s0-")
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["finished"] and summary["objective"] == "dro_time"
+    assert (summary["config"]["objective"]["dro_eta"], summary["config"]["objective"]["dro_bins"]) == (0.5, 4)
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    train_rows = metrics[metrics.phase == "train"].pivot(index="step", columns="name", values="value")
+    assert (train_rows.tar_mix == 1).all() and train_rows.loss.notna().all()
+    assert (train_rows.weight_max > 1).all()  # the group weights moved from the first step
+    whole = _final_state(run_dir)
+    log_q = whole["objective"]["weighting_state"]
+    assert log_q.shape == (4,) and float(log_q.exp().sum()) == pytest.approx(1.0)
+    assert float(log_q.max() - log_q.min()) > 0.01
+
+    config = tiny(tmp_path / "resumed", data_root, *overrides)
+    original, calls = SegmentSampler.sample, {"n": 0}
+
+    def sample(self):
+        calls["n"] += 1
+        if calls["n"] == 17:  # steps 1..16 done; the last checkpoint is step 10's
+            raise _Crash
+        return original(self)
+
+    monkeypatch.setattr(SegmentSampler, "sample", sample)
+    with pytest.raises(_Crash):
+        train(config)
+    (resumed_dir,) = list(Path(config["runs_root"]).iterdir())
+    saved = load_checkpoint(resumed_dir)
+    assert saved["step"] == 10 and not torch.equal(saved["objective"]["weighting_state"], log_q)
+    monkeypatch.setattr(SegmentSampler, "sample", original)
+    train(config)
+    resumed = _final_state(resumed_dir)
+    _assert_same_training(whole, resumed)
+    assert torch.equal(resumed["objective"]["weighting_state"], log_q)
 
 
 def test_smoke_run_writes_every_output(smoke_run):
