@@ -12,15 +12,17 @@ random order) so that machine noise hits all variants alike; medians and IQRs ar
   policy, for ``bc_mean`` (torchrl's ``BCLoss`` with its mean reduction, the TorchRL
   baseline), ``uniform`` (``TARLoss(inner, "uniform")``), ``tar`` (``TARLoss(inner, "tar")``,
   paper cap), ``tar_exact`` (``cap="exact"``) and the baselines from the literature ``tilted``,
-  ``truncate``, ``keyframe``, ``focal`` (``TARLoss(inner, name)``, default parameters). Every
+  ``truncate``, ``keyframe``, ``focal``, ``dro_time`` (``TARLoss(inner, name)``, default parameters;
+  ``dro_time`` updates its group weights every step). Every
   variant trains its own deep copy of one seeded network with its own optimizer. Besides the
   ratio of medians, the per-repetition ratio ``time_variant[r] / time_baseline[r]`` (both timed
   in the same round) is reported as ``train_step_paired``: it is less noisy.
 * ``weighting``: the weighting function alone on ``[256, 16]`` float32 losses: a plain masked
   mean (the baseline), ``tar_weights`` with the paper and the exact cap, eager and under
   ``torch.compile`` (inductor), and the baselines' weight functions (``tilted_weights``,
-  ``truncate_weights``, ``keyframe_weights``, ``focal_weights``), eager. Each timing sample is
-  the mean of ``--calls`` calls.
+  ``truncate_weights``, ``keyframe_weights``, ``focal_weights``; for ``dro_time`` the registered
+  function as ``TARLoss`` calls it, from the steps' positions in their episodes: binning, the update
+  of the group weights and the weights), eager. Each timing sample is the mean of ``--calls`` calls.
 
 Output: a table on stdout and one tidy CSV (default ``benchmarks/results/objective.csv``), one
 row per (section, variant, baseline) with columns ``section, variant, median, iqr, unit,
@@ -51,7 +53,9 @@ from torchrl.objectives import BCLoss
 
 from tar_rl.io import write_csv_atomic
 from tar_rl.objectives import (
+    WEIGHTINGS,
     TARLoss,
+    WeightingParams,
     focal_weights,
     keyframe_weights,
     tar_weights,
@@ -69,7 +73,8 @@ BATCH, SLICE_LEN = 256, 16
 OBS_DIM, N_TASKS, ACTION_DIM, HIDDEN, DEPTH = 39, 10, 4, 256, 3
 PAD_SEGMENT_FRACTION = 0.25  # segments that end early; with lengths in [4, 15] ~10% of steps are padding
 
-BASELINES = ("tilted", "truncate", "keyframe", "focal")  # the weightings from the literature, by registry name
+# the weightings from the literature, by registry name
+BASELINES = ("tilted", "truncate", "keyframe", "focal", "dro_time")
 STEP_VARIANTS = ("bc_mean", "uniform", "tar", "tar_exact", *BASELINES)
 STEP_BASELINES = ("uniform", "bc_mean")
 WEIGHT_BASELINE = "masked_mean"
@@ -98,7 +103,9 @@ def make_batch(seed: int = 0) -> TensorDict:
 
     Observations are 39 features plus a one-hot task id (constant within a segment); actions
     lie in ``[-1, 1]``. A quarter of the segments end early (length 4..15); their tail is
-    padding that repeats the last real step, with ``("collector", "mask")`` False there.
+    padding that repeats the last real step, with ``("collector", "mask")`` False there. Each
+    segment lies in an episode of 40..199 steps (``step``, ``episode_length``; a short segment
+    ends with its episode), for ``dro_time``.
     """
     g = torch.Generator().manual_seed(seed)
     features = torch.randn(BATCH, SLICE_LEN, OBS_DIM, generator=g)
@@ -113,8 +120,17 @@ def make_batch(seed: int = 0) -> TensorDict:
     last = torch.minimum(steps[None, :], (length - 1)[:, None])  # padding repeats the last real step
     observation = observation.gather(1, last[..., None].expand_as(observation))
     action = action.gather(1, last[..., None].expand_as(action))
+    episode_length = torch.randint(40, 200, (BATCH,), generator=g)
+    anywhere = (torch.rand(BATCH, generator=g) * (episode_length - SLICE_LEN + 1)).long()
+    start = torch.where(short, episode_length - length, anywhere)
     return TensorDict(
-        {"observation": observation.contiguous(), "action": action.contiguous(), ("collector", "mask"): mask},
+        {
+            "observation": observation.contiguous(),
+            "action": action.contiguous(),
+            "step": start[:, None] + last,
+            "episode_length": episode_length[:, None].expand(BATCH, SLICE_LEN).clone(),
+            ("collector", "mask"): mask,
+        },
         batch_size=[BATCH, SLICE_LEN],
     )
 
@@ -169,6 +185,18 @@ def tar_paper(losses: Tensor, valid: Tensor) -> Tensor:
 
 def tar_exact(losses: Tensor, valid: Tensor) -> Tensor:
     return tar_weights(losses, valid, cap="exact")
+
+
+def make_dro_time(batch: TensorDict) -> Callable[[Tensor, Tensor], Tensor]:
+    """``dro_time``'s registered function on the batch's steps, from uniform group weights (as ``TARLoss`` calls it)."""
+    spec, params = WEIGHTINGS["dro_time"], WeightingParams()
+    state = spec.initial_state(params)
+    step, length = batch.get("step"), batch.get("episode_length")
+
+    def dro_time(losses: Tensor, valid: Tensor) -> Tensor:
+        return spec.weights(losses, valid, params, 1.0, None, step=step, episode_length=length, state=state)[0]
+
+    return dro_time
 
 
 # ---------------------------------------------------------------------------------------------
@@ -263,6 +291,7 @@ def bench_weighting(reps: int, calls: int, seed: int) -> tuple[list[dict], list[
         "truncate": truncate_weights,
         "keyframe": keyframe_weights,
         "focal": focal_weights,
+        "dro_time": make_dro_time(batch),
     }
     fns: dict[str, Callable] = dict(eager)
     notes = []

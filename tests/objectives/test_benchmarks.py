@@ -49,10 +49,11 @@ def test_bench_objective_quick_writes_csv(tmp_path):
     unavailable = df[df.unit == "unavailable"]
     assert set(unavailable.variant) <= set(bench.COMPILED)
     assert unavailable["median"].isna().all()
-    for name in ("masked_mean", "tar_paper", "tar_exact", "tilted", "truncate", "keyframe", "focal"):
+    for name in ("masked_mean", "tar_paper", "tar_exact", "tilted", "truncate", "keyframe", "focal", "dro_time"):
         assert name in set(measured[measured.section == "weighting"].variant)
     # the baselines from the literature are timed in a training step beside uniform
-    assert {"tilted", "truncate", "keyframe", "focal"} <= set(paired[paired.baseline == "uniform"].variant)
+    baselines = {"tilted", "truncate", "keyframe", "focal", "dro_time"}
+    assert baselines <= set(paired[paired.baseline == "uniform"].variant)
 
 
 @pytest.mark.slow
