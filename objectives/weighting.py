@@ -38,6 +38,7 @@ __all__ = [
     "DEFAULT_EPS",
     "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
+    "DEFAULT_GRIPPER_DIMS",
     "DEFAULT_KEYFRAME_FACTOR",
     "DEFAULT_KEYFRAME_FRACTION",
     "DEFAULT_TILT",
@@ -76,6 +77,8 @@ DEFAULT_KEYFRAME_FRACTION = 0.3
 DEFAULT_KEYFRAME_FACTOR = 5.0
 #: Exponent ``beta`` of the ``focal`` baseline.
 DEFAULT_FOCAL_BETA = 1.0
+#: ``tar_arm``'s gripper dims: the last action dim (MetaWorld's and LIBERO's gripper).
+DEFAULT_GRIPPER_DIMS: tuple[int, ...] = (-1,)
 
 CapMode = Literal["paper", "exact"]
 CAP_MODES: tuple[str, ...] = ("paper", "exact")
@@ -108,6 +111,9 @@ class WeightingParams:
         keyframe_fraction: ``f`` of ``keyframe``, in ``(0, 1)``. Default ``0.3``.
         keyframe_factor: ``K`` of ``keyframe``, a finite number ``>= 1``. Default ``5.0``.
         focal_beta: ``beta`` of ``focal``, a finite number ``>= 0``. Default ``1.0``.
+        gripper_dims: the gripper's action dims (indices along the last axis of per-element
+            losses; negative counts from the end) that ``tar_arm`` averages uniformly: a
+            non-empty tuple of distinct ints. Default ``(-1,)``.
     """
 
     gamma: float = DEFAULT_GAMMA
@@ -119,6 +125,7 @@ class WeightingParams:
     keyframe_fraction: float = DEFAULT_KEYFRAME_FRACTION
     keyframe_factor: float = DEFAULT_KEYFRAME_FACTOR
     focal_beta: float = DEFAULT_FOCAL_BETA
+    gripper_dims: tuple[int, ...] = DEFAULT_GRIPPER_DIMS
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gamma, (int, float)) and math.isfinite(self.gamma) and self.gamma > 0):
@@ -143,6 +150,14 @@ class WeightingParams:
             value = getattr(self, name)
             if not (_finite_number(value) and ok(value)):
                 raise ValueError(f"{name} must be {rule}, got {value!r}.")
+        dims = self.gripper_dims
+        if not (
+            isinstance(dims, tuple)
+            and dims
+            and all(isinstance(d, int) and not isinstance(d, bool) for d in dims)
+            and len(set(dims)) == len(dims)
+        ):
+            raise ValueError(f"gripper_dims must be a non-empty tuple of distinct ints, got {dims!r}.")
 
 
 def check_step_losses(losses: Tensor, valid: Tensor) -> None:
@@ -480,6 +495,9 @@ class Weighting:
         summary: one line for listings and error messages.
         check: ``(params) -> None``, raises a ``ValueError`` naming the parameter when
             ``params`` (valid in general) do not suit this weighting; ``None``: all do.
+        elementwise: ``weights`` scores per-element losses ``[B, L, *event, A]`` with a mask of
+            that shape and returns per-element weights (:mod:`~tar_rl.objectives.elementwise`);
+            ``False``: per-step losses ``[..., L]`` in, per-step weights out.
     """
 
     name: str
@@ -488,6 +506,7 @@ class Weighting:
     stochastic: bool = False
     summary: str = ""
     check: Callable[[WeightingParams], None] | None = None
+    elementwise: bool = False
 
 
 def _param_kwargs(params: WeightingParams) -> dict:

@@ -85,6 +85,7 @@ def make_objective(obj: ObjectiveConfig, steps: int, seed: int, policy: Policy) 
         keyframe_fraction=obj.keyframe_fraction,
         keyframe_factor=obj.keyframe_factor,
         focal_beta=obj.focal_beta,
+        gripper_dims=tuple(obj.gripper_dims),
         schedule=schedule,
         perturb_fraction=obj.perturb_fraction,
         perturb_scale=obj.perturb_scale,

@@ -90,6 +90,8 @@ class ObjectiveConfig:
             loss from the top, up-weighted (``floor(f * M + 1/2)`` steps, at least 1; after Wen et al., ICML 2021).
         keyframe_factor: for ``keyframe``: how many times the others' weight those steps get (``K >= 1``).
         focal_beta: for ``focal``: the exponent ``beta >= 0`` of ``(loss / mean loss) ** beta``.
+        gripper_dims: for ``tar_arm``: the action dims (indices, negative from the end) averaged uniformly
+            while TAR weights the others; default ``[-1]``, the last dim (MetaWorld's gripper).
         compile: ``torch.compile`` the weighting (``tar``, ``invert``, the baselines): ``auto`` (on CUDA with
             triton: a GPU step otherwise pays ~0.5 ms of tiny kernel launches for it), ``always``
             or ``never``. Not part of a run's identity (the weights agree up to float rounding).
@@ -110,6 +112,7 @@ class ObjectiveConfig:
     keyframe_fraction: float = 0.3
     keyframe_factor: float = 5.0
     focal_beta: float = 1.0
+    gripper_dims: list[int] = field(default_factory=lambda: [-1])
     compile: str = "auto"
 
 

@@ -49,10 +49,12 @@ def test_bench_objective_quick_writes_csv(tmp_path):
     unavailable = df[df.unit == "unavailable"]
     assert set(unavailable.variant) <= set(bench.COMPILED)
     assert unavailable["median"].isna().all()
-    for name in ("masked_mean", "tar_paper", "tar_exact", "tilted", "truncate", "keyframe", "focal"):
+    for name in ("masked_mean", "tar_paper", "tar_exact", "tilted", "truncate", "keyframe", "focal", "tar_arm"):
         assert name in set(measured[measured.section == "weighting"].variant)
     # the baselines from the literature are timed in a training step beside uniform
-    assert {"tilted", "truncate", "keyframe", "focal"} <= set(paired[paired.baseline == "uniform"].variant)
+    assert {"tilted", "truncate", "keyframe", "focal", "tar_arm", "tar_dimnorm"} <= set(
+        paired[paired.baseline == "uniform"].variant
+    )
 
 
 @pytest.mark.slow
