@@ -268,8 +268,9 @@ def mix_uniform(w: Tensor, m: Tensor, mix: float | Tensor) -> Tensor:
     return (1 - mix) * m + mix * w
 
 
-def _weights_from_scores(scores_input: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor) -> Tensor:
-    """Eqs. 4-8 plus the schedule's mixing, on already detached and checked inputs."""
+def weights_from_scores(scores_input: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor) -> Tensor:
+    """Eqs. 4-8 plus the schedule's mixing, on already detached and checked inputs (for weightings that score
+    steps by something other than their loss; not exported)."""
     dtype = scores_input.dtype
     x = scores_input.float() if dtype in HALF_DTYPES else scores_input
     m = valid.to(x.dtype)
@@ -345,7 +346,7 @@ def tar_weights(
     """
     params = WeightingParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
     check_step_losses(losses, valid)
-    return _weights_from_scores(losses.detach(), valid, params, mix)
+    return weights_from_scores(losses.detach(), valid, params, mix)
 
 
 def window_weights(losses: Tensor, slice_len: int, **params) -> Tensor:
@@ -394,7 +395,7 @@ def invert_weights(losses: Tensor, valid: Tensor, *, mix: float | Tensor = 1.0, 
     same temperature, unit mean, mixing and cap (``**params`` as in :func:`tar_weights`).
     """
     check_step_losses(losses, valid)
-    return _weights_from_scores(-losses.detach(), valid, WeightingParams(**params), mix)
+    return weights_from_scores(-losses.detach(), valid, WeightingParams(**params), mix)
 
 
 def random_weights(
@@ -412,7 +413,7 @@ def random_weights(
     """
     check_step_losses(losses, valid)
     scores = _rand_like(losses, generator, normal=True).to(losses.dtype)
-    return _weights_from_scores(scores, valid, WeightingParams(**params), mix)
+    return weights_from_scores(scores, valid, WeightingParams(**params), mix)
 
 
 def _random_order(valid: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -519,7 +520,7 @@ def _uniform(losses, valid, params, mix, generator):
 
 def _tar(losses, valid, params, mix, generator):
     check_step_losses(losses, valid)
-    return _weights_from_scores(losses.detach(), valid, params, mix)
+    return weights_from_scores(losses.detach(), valid, params, mix)
 
 
 def _invert(losses, valid, params, mix, generator):

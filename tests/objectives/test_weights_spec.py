@@ -640,6 +640,8 @@ NAMES = [
     "truncate",
     "keyframe",
     "focal",
+    "tar_arm",
+    "tar_dimnorm",
 ]
 
 
@@ -663,7 +665,15 @@ def test_unknown_weighting_lists_names():
 @pytest.mark.parametrize("name", NAMES)
 def test_every_weighting_is_a_unit_mean_weighting(name):
     losses, valid = padded_batch()
-    w = WEIGHTINGS[name].weights(losses, valid, WeightingParams(), 1.0, torch.Generator().manual_seed(0))
+    spec = WEIGHTINGS[name]
+    if spec.elementwise:  # per-element losses [B, L, 2] (the second dim doubled), reduced to step weights
+        elements = torch.stack([losses, 2 * losses], -1)
+        element_valid = valid[..., None].expand_as(elements)
+        w = spec.weights(elements, element_valid, WeightingParams(), 1.0, None)
+        assert w.shape == elements.shape and (w[~element_valid] == 0).all()
+        w = w.mean(-1)
+    else:
+        w = spec.weights(losses, valid, WeightingParams(), 1.0, torch.Generator().manual_seed(0))
     assert w.shape == losses.shape and w.dtype == losses.dtype
     assert torch.isfinite(w).all()
     assert (w >= 0).all()
