@@ -9,6 +9,8 @@ What it generates, each from where the code or the results hold it:
   value no check accepts, and the refusal's message names the choices or the range.
 * ``docs/figures/*.png``: copies of the figures the pages embed, from the benchmark results that draw them
   (:data:`FIGURES`).
+* ``README.md``, between the ``<!-- generated: regimes -->`` markers: the regime study's decision table in brief,
+  from ``benchmarks/results/regimes/decision.csv``.
 
 ``tests/test_docs.py`` fails when a committed file differs from what this command writes.
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import ast
 import copy
+import csv
 import dataclasses
 import inspect
 import re
@@ -26,6 +29,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIG_PAGE = "docs/config.md"
+README = "README.md"
+REGIMES_CSV = "benchmarks/results/regimes/decision.csv"
+REGIMES_BEGIN = "<!-- generated: regimes (python docs/generate.py) -->"
+REGIMES_END = "<!-- end generated: regimes -->"
 
 #: The embedded figures: docs/figures/<name> <- the result file that a benchmark command draws.
 FIGURES = {
@@ -311,12 +318,50 @@ def _yes(flag: bool) -> str:
     return "yes" if flag else "no"
 
 
+# -- The README's regime block ------------------------------------------------------------------
+
+
+def _num(text: str, digits: int, signed: bool = False) -> str:
+    if text == "":
+        return "-"
+    return f"{float(text):+.{digits}f}" if signed else f"{float(text):.{digits}f}"
+
+
+def regimes_block() -> str:
+    """The regime study's decision table in brief, from ``decision.csv``."""
+    with open(REPO / REGIMES_CSV, newline="") as f:
+        rows = list(csv.DictReader(f))
+    out = [
+        REGIMES_BEGIN,
+        "",
+        "| regime | pairs | success % uniform / TAR | Δ success [95% CI] | Holm p |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ci = f"[{_num(r['d_success_ci_low'], 2, True)}, {_num(r['d_success_ci_high'], 2, True)}]"
+        out.append(
+            f"| {r['regime']} | {r['pairs']} | {_num(r['success_uniform'], 1)} / {_num(r['success_tar'], 1)} | "
+            f"{_num(r['d_success'], 2, True)} {ci} | {_num(r['holm_p'], 3)} |"
+        )
+    out += ["", REGIMES_END]
+    return "\n".join(out)
+
+
+def readme_text() -> str:
+    """README.md with its generated block as the command writes it."""
+    text = (REPO / README).read_text()
+    begin, end = text.find(REGIMES_BEGIN), text.find(REGIMES_END)
+    if begin < 0 or end < begin:
+        raise SystemExit(f"{README} lacks the markers {REGIMES_BEGIN!r} ... {REGIMES_END!r}")
+    return text[:begin] + regimes_block() + text[end + len(REGIMES_END) :]
+
+
 # -- The command --------------------------------------------------------------------------------
 
 
 def outputs() -> dict[str, bytes]:
     """Every generated file, by its path relative to the repository, with the content the command writes."""
-    files = {CONFIG_PAGE: config_page().encode()}
+    files = {CONFIG_PAGE: config_page().encode(), README: readme_text().encode()}
     for name, source in FIGURES.items():
         files[f"docs/figures/{name}"] = (REPO / source).read_bytes()
     return files
