@@ -12,8 +12,9 @@ random order) so that machine noise hits all variants alike; medians and IQRs ar
   policy, for ``bc_mean`` (torchrl's ``BCLoss`` with its mean reduction, the TorchRL
   baseline), ``uniform`` (``TARLoss(inner, "uniform")``), ``tar`` (``TARLoss(inner, "tar")``,
   paper cap), ``tar_exact`` (``cap="exact"``) and the baselines from the literature ``tilted``,
-  ``truncate``, ``keyframe``, ``focal``, ``dro_time`` (``TARLoss(inner, name)``, default parameters;
-  ``dro_time`` updates its group weights every step). Every
+  ``truncate``, ``keyframe``, ``focal``, ``dro_time`` and TAR's element variants ``tar_arm``,
+  ``tar_dimnorm`` (``TARLoss(inner, name)``, default parameters; ``dro_time`` updates its group weights every
+  step). Every
   variant trains its own deep copy of one seeded network with its own optimizer. Besides the
   ratio of medians, the per-repetition ratio ``time_variant[r] / time_baseline[r]`` (both timed
   in the same round) is reported as ``train_step_paired``: it is less noisy.
@@ -22,7 +23,9 @@ random order) so that machine noise hits all variants alike; medians and IQRs ar
   ``torch.compile`` (inductor), and the baselines' weight functions (``tilted_weights``,
   ``truncate_weights``, ``keyframe_weights``, ``focal_weights``; for ``dro_time`` the registered
   function as ``TARLoss`` calls it, from the steps' positions in their episodes: binning, the update
-  of the group weights and the weights), eager. Each timing sample is the mean of ``--calls`` calls.
+  of the group weights and the weights) and the element variants (``tar_arm_weights``,
+  ``tar_dimnorm_weights``, on ``[256, 16, 4]`` per-element losses), eager. Each timing sample is the mean of
+  ``--calls`` calls.
 
 Output: a table on stdout and one tidy CSV (default ``benchmarks/results/objective.csv``), one
 row per (section, variant, baseline) with columns ``section, variant, median, iqr, unit,
@@ -58,6 +61,8 @@ from tar_rl.objectives import (
     WeightingParams,
     focal_weights,
     keyframe_weights,
+    tar_arm_weights,
+    tar_dimnorm_weights,
     tar_weights,
     tilted_weights,
     truncate_weights,
@@ -75,11 +80,12 @@ PAD_SEGMENT_FRACTION = 0.25  # segments that end early; with lengths in [4, 15] 
 
 # the weightings from the literature, by registry name
 BASELINES = ("tilted", "truncate", "keyframe", "focal", "dro_time")
-STEP_VARIANTS = ("bc_mean", "uniform", "tar", "tar_exact", *BASELINES)
+ELEMENT = ("tar_arm", "tar_dimnorm")  # TAR's element variants, by registry name
+STEP_VARIANTS = ("bc_mean", "uniform", "tar", "tar_exact", *BASELINES, *ELEMENT)
 STEP_BASELINES = ("uniform", "bc_mean")
 WEIGHT_BASELINE = "masked_mean"
 COMPILED = {"tar_paper_compiled": "tar_paper", "tar_exact_compiled": "tar_exact"}
-WEIGHT_VARIANTS = ("masked_mean", "tar_paper", "tar_exact", *COMPILED, *BASELINES)
+WEIGHT_VARIANTS = ("masked_mean", "tar_paper", "tar_exact", *COMPILED, *BASELINES, *ELEMENT)
 COLUMNS = [
     "section",
     "variant",
@@ -155,7 +161,7 @@ def make_step(variant: str, net: torch.nn.Module, batch: TensorDict) -> Callable
             loss_module, key = BCLoss(actor, loss_function="mse"), "loss_bc"
         else:
             inner = BCLoss(actor, loss_function="mse", reduction="none")
-            if variant in ("uniform", "tar", *BASELINES):
+            if variant in ("uniform", "tar", *BASELINES, *ELEMENT):
                 loss_module = TARLoss(inner, variant)
             elif variant == "tar_exact":
                 loss_module = TARLoss(inner, "tar", cap="exact")
@@ -308,6 +314,13 @@ def bench_weighting(reps: int, calls: int, seed: int) -> tuple[list[dict], list[
             for _ in range(max(calls, 20)):
                 fn(losses, valid)
         calls_fns = {name: (lambda fn=fn: fn(losses, valid)) for name, fn in fns.items()}
+        # the element variants score per-element losses [B, L, A] with the step mask broadcast over A
+        elements = torch.rand(BATCH, SLICE_LEN, ACTION_DIM, generator=g, dtype=torch.float32).square()
+        element_valid = valid[..., None].expand_as(elements)
+        for name, fn in (("tar_arm", tar_arm_weights), ("tar_dimnorm", tar_dimnorm_weights)):
+            for _ in range(max(calls, 20)):
+                fn(elements, element_valid)
+            calls_fns[name] = lambda fn=fn: fn(elements, element_valid)
         times = interleaved(calls_fns, reps, seed=seed, inner=calls, collect_every=20)
 
     stats = {v: median_iqr(t * 1e6) for v, t in times.items()}

@@ -429,15 +429,15 @@ def execute(scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_d
 # -- Provenance ------------------------------------------------------------------------------------
 
 
-def provenance(scale: Scale, argv: Sequence[str]) -> dict:
-    """Command, git commit, scale and machine of an output."""
+def provenance(scale: Scale, argv: Sequence[str], script: str = "paper_experiments.py") -> dict:
+    """Command (``script`` in ``benchmarks/`` with ``argv``), git commit, scale and machine of an output."""
     import torch
 
     from tar_rl.runs import git_commit
 
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     return {
-        "command": "python benchmarks/paper_experiments.py " + " ".join(shlex.quote(a) for a in argv),
+        "command": f"python benchmarks/{script} " + " ".join(shlex.quote(a) for a in argv),
         "git_commit": git_commit() or "unknown",
         "scale": scale.name,
         "scale_about": scale.about,

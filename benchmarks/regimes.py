@@ -576,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "table":
         dest = Path(args.tables) if args.tables else out
         dest.mkdir(parents=True, exist_ok=True)
-        print(write_tables(study, planner, out, provenance(study.scale, argv), dest))
+        print(write_tables(study, planner, out, provenance(study.scale, argv, "regimes.py"), dest))
     if failed:
         print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
         return 1

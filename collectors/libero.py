@@ -42,7 +42,7 @@ as the importer is.
 
 Package. ``LiberoEnv`` imports ``libero.libero``; this module imports it lazily, so it imports
 without it. The releases on PyPI that install here with MetaWorld's MuJoCo 3.3.0 and ship the
-scene assets are named in :data:`INSTALL_HINT` (see the README's LIBERO section for what was run).
+scene assets are named in :data:`INSTALL_HINT` (see docs/data.md, "LIBERO", for what was run).
 """
 
 from __future__ import annotations

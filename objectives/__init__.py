@@ -1,4 +1,4 @@
-"""Objectives: TAR's weightings, the baselines from the literature, TAR's schedule and the ``TARLoss`` LossModule.
+"""Objectives: TAR's weightings and element variants, the baselines from the literature, TAR's schedule, ``TARLoss``.
 
 Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.toml``).
 """
@@ -14,6 +14,7 @@ from .baselines import (
     truncate_count,
     truncate_weights,
 )
+from .elementwise import check_element_losses, element_mean, tar_arm_weights, tar_dimnorm_weights
 from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
 from .supervision import perturb_target
 from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
@@ -24,6 +25,7 @@ from .weighting import (
     DEFAULT_EPS,
     DEFAULT_FOCAL_BETA,
     DEFAULT_GAMMA,
+    DEFAULT_GRIPPER_DIMS,
     DEFAULT_KEYFRAME_FACTOR,
     DEFAULT_KEYFRAME_FRACTION,
     DEFAULT_TILT,
@@ -52,6 +54,7 @@ __all__ = [
     "DEFAULT_EPS",
     "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
+    "DEFAULT_GRIPPER_DIMS",
     "DEFAULT_KEYFRAME_FACTOR",
     "DEFAULT_KEYFRAME_FRACTION",
     "DEFAULT_TILT",
@@ -64,9 +67,11 @@ __all__ = [
     "TARLoss",
     "Weighting",
     "WeightingParams",
+    "check_element_losses",
     "check_step_losses",
     "compiles_weights",
     "dro_time_weights",
+    "element_mean",
     "focal_weights",
     "get_weighting",
     "invert_weights",
@@ -78,6 +83,8 @@ __all__ = [
     "random_weights",
     "segment_mean",
     "shuffle_weights",
+    "tar_arm_weights",
+    "tar_dimnorm_weights",
     "tar_weights",
     "tilted_weights",
     "time_bins",

@@ -22,6 +22,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.objectives import LossModule
 
+from .elementwise import element_mean
 from .schedule import MixSchedule
 from .supervision import perturb_target
 from .weighting import (
@@ -30,6 +31,7 @@ from .weighting import (
     DEFAULT_EPS,
     DEFAULT_FOCAL_BETA,
     DEFAULT_GAMMA,
+    DEFAULT_GRIPPER_DIMS,
     DEFAULT_KEYFRAME_FACTOR,
     DEFAULT_KEYFRAME_FRACTION,
     DEFAULT_TILT,
@@ -96,9 +98,12 @@ class TARLoss(LossModule):
             dims); other ``loss_*`` entries must be scalars and are added unweighted.
         weighting (str): a name from :data:`tar_rl.objectives.WEIGHTINGS`: ``"tar"`` (default),
             ``"uniform"`` (Eq. 1), a control: ``"shuffle"``, ``"random"``, ``"invert"``,
-            ``"perturb_high"``, ``"perturb_low"``, or a baseline from the literature
+            ``"perturb_high"``, ``"perturb_low"``, a baseline from the literature
             (:mod:`~tar_rl.objectives.baselines`): ``"tilted"``, ``"truncate"``, ``"keyframe"``,
-            ``"focal"``, ``"dro_time"``.
+            ``"focal"``, ``"dro_time"``, or an element weighting (:mod:`~tar_rl.objectives.elementwise`):
+            ``"tar_arm"``, ``"tar_dimnorm"``. An element weighting scores the per-element
+            losses before the event dims are averaged; it needs an inner loss with event dims
+            whose last axis holds the action dims.
 
     Keyword Args:
         gamma, w_max, eps, cap: TAR's hyper-parameters, see :func:`tar_rl.tar_weights`
@@ -111,6 +116,7 @@ class TARLoss(LossModule):
         dro_eta, dro_bins: the step size ``eta > 0`` (default ``0.01``) and the number of bins of
             normalised episode time ``G >= 1`` (default ``10``) of ``dro_time``
             (:func:`~tar_rl.objectives.dro_time_weights`).
+        gripper_dims: the action dims ``tar_arm`` averages uniformly; default ``(-1,)``.
         schedule (MixSchedule): when TAR (and every other weighting) is mixed in; default: fully
             on from the first step. Before ``schedule.start`` every weighting is the uniform mean.
         loss_key (NestedKey): the inner output holding the per-step loss; default: its only
@@ -228,6 +234,7 @@ class TARLoss(LossModule):
         focal_beta: float = DEFAULT_FOCAL_BETA,
         dro_eta: float = DEFAULT_DRO_ETA,
         dro_bins: int = DEFAULT_DRO_BINS,
+        gripper_dims: tuple[int, ...] = DEFAULT_GRIPPER_DIMS,
         schedule: MixSchedule | None = None,
         loss_key: NestedKey | None = None,
         perturb_fraction: float = 0.25,
@@ -272,6 +279,7 @@ class TARLoss(LossModule):
             focal_beta=focal_beta,
             dro_eta=dro_eta,
             dro_bins=dro_bins,
+            gripper_dims=gripper_dims,
         )
         if self.weighting.check is not None:
             self.weighting.check(self.weighting_params)
@@ -375,15 +383,26 @@ class TARLoss(LossModule):
 
         out = self.inner(tensordict)
         key = self._loss_entry(out)
-        losses = self._step_losses(out, key, tensordict)
         # The weights are stop-gradient (Eq. 3): the weighting sees detached losses.
-        scored = self._scored(losses.detach(), valid)
-        weights = self._weight_function(losses.device)(scored, valid, self.weighting_params, mix, generator, **inputs)
-        if spec.initial_state is not None:
-            weights, state = weights
-            if training_step:
-                self.weighting_state.copy_(state)
-        loss = segment_mean(losses, weights, valid)
+        if spec.elementwise:
+            elements, event_valid = self._element_losses(out, key, tensordict)
+            weigh = self._weight_function(elements.device)
+            element_valid = event_valid & valid.reshape(valid.shape + (1,) * (elements.ndim - valid.ndim))
+            scored = self._scored(elements.detach(), element_valid)
+            element_weights = weigh(scored, element_valid, self.weighting_params, mix, generator, **inputs)
+            losses = element_mean(elements, event_valid)
+            weights = element_mean(element_weights, event_valid)  # a step's weight: its elements' mean
+            loss = segment_mean(element_mean(element_weights * elements, event_valid), torch.ones_like(weights), valid)
+        else:
+            losses = self._step_losses(out, key, tensordict)
+            scored = self._scored(losses.detach(), valid)
+            weigh = self._weight_function(losses.device)
+            weights = weigh(scored, valid, self.weighting_params, mix, generator, **inputs)
+            if spec.initial_state is not None:
+                weights, state = weights
+                if training_step:
+                    self.weighting_state.copy_(state)
+            loss = segment_mean(losses, weights, valid)
         for name, value in self._extra_losses(out, key).items():
             loss = loss + value
             diagnostics[f"aux_{name}"] = value.detach()
@@ -499,6 +518,31 @@ class TARLoss(LossModule):
 
     def _step_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> Tensor:
         """The inner per-step loss at ``key`` as ``[B, L]``: trailing event dims averaged away."""
+        loss = self._checked_loss(out, key, tensordict)
+        if loss.ndim == tensordict.batch_dims:
+            return loss
+        if self.tensor_keys.event_valid is None:
+            return loss.mean(tuple(range(tensordict.batch_dims, loss.ndim)))
+        return element_mean(loss, self._event_valid(loss, tensordict), tensordict.batch_dims)
+
+    def _element_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """The inner per-element loss ``[B, L, *event, A]`` and its event mask (all ``True`` if no ``event_valid``)."""
+        loss = self._checked_loss(out, key, tensordict)
+        if tensordict.batch_dims != 2:
+            raise ValueError(
+                f"objective {self.weighting.name!r} weights per-element losses of a [B, L] batch, got batch shape "
+                f"{list(tensordict.batch_size)}: reshape it to [B, L]."
+            )
+        if loss.ndim == tensordict.batch_dims:
+            raise ValueError(
+                f"objective {self.weighting.name!r} weights per-element losses, but the inner loss's {key!r} has one "
+                f"loss per step (shape {list(loss.shape)}): it needs event dims with the action dims last."
+            )
+        if self.tensor_keys.event_valid is None:
+            return loss, torch.ones(loss.shape, dtype=torch.bool, device=loss.device)
+        return loss, self._event_valid(loss, tensordict)
+
+    def _checked_loss(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> Tensor:
         loss = out.get(key)
         batch = tensordict.batch_size
         if loss.shape[: len(batch)] != batch:
@@ -507,12 +551,11 @@ class TARLoss(LossModule):
                 f"losses shaped like the batch {list(batch)} (then any event dims): build the inner "
                 "loss with reduction='none' and do not pass it a pad_mask (which flattens the output)."
             )
-        if loss.ndim == len(batch):
-            return loss
-        event_dims = tuple(range(len(batch), loss.ndim))
+        return loss
+
+    def _event_valid(self, loss: Tensor, tensordict: TensorDictBase) -> Tensor:
+        """The ``event_valid`` mask broadcast to the loss's shape."""
         event_key = self.tensor_keys.event_valid
-        if event_key is None:
-            return loss.mean(event_dims)
         event_valid = tensordict.get(event_key)
         if event_valid.dtype != torch.bool or event_valid.shape != loss.shape[: event_valid.ndim]:
             raise ValueError(
@@ -520,6 +563,4 @@ class TARLoss(LossModule):
                 f"shape {list(loss.shape)}, got {event_valid.dtype} {list(event_valid.shape)}."
             )
         event_valid = event_valid.reshape(event_valid.shape + (1,) * (loss.ndim - event_valid.ndim))
-        event_valid = event_valid.expand_as(loss)
-        total = torch.where(event_valid, loss, torch.zeros((), dtype=loss.dtype, device=loss.device)).sum(event_dims)
-        return total / event_valid.sum(event_dims).clamp_min(1).to(loss.dtype)
+        return event_valid.expand_as(loss)

@@ -40,6 +40,7 @@ __all__ = [
     "DEFAULT_EPS",
     "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
+    "DEFAULT_GRIPPER_DIMS",
     "DEFAULT_KEYFRAME_FACTOR",
     "DEFAULT_KEYFRAME_FRACTION",
     "DEFAULT_TILT",
@@ -83,6 +84,8 @@ DEFAULT_FOCAL_BETA = 1.0
 DEFAULT_DRO_ETA = 0.01
 #: Groups of the ``dro_time`` baseline: bins of normalised episode time.
 DEFAULT_DRO_BINS = 10
+#: ``tar_arm``'s gripper dims: the last action dim (MetaWorld's and LIBERO's gripper).
+DEFAULT_GRIPPER_DIMS: tuple[int, ...] = (-1,)
 
 CapMode = Literal["paper", "exact"]
 CAP_MODES: tuple[str, ...] = ("paper", "exact")
@@ -119,6 +122,9 @@ class WeightingParams:
             Default ``0.01``.
         dro_bins: ``G`` of ``dro_time``, the number of bins of normalised episode time, an integer
             ``>= 1``. Default ``10``.
+        gripper_dims: the gripper's action dims (indices along the last axis of per-element
+            losses; negative counts from the end) that ``tar_arm`` averages uniformly: a
+            non-empty tuple of distinct ints. Default ``(-1,)``.
     """
 
     gamma: float = DEFAULT_GAMMA
@@ -132,6 +138,7 @@ class WeightingParams:
     focal_beta: float = DEFAULT_FOCAL_BETA
     dro_eta: float = DEFAULT_DRO_ETA
     dro_bins: int = DEFAULT_DRO_BINS
+    gripper_dims: tuple[int, ...] = DEFAULT_GRIPPER_DIMS
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gamma, (int, float)) and math.isfinite(self.gamma) and self.gamma > 0):
@@ -160,6 +167,14 @@ class WeightingParams:
         bins = self.dro_bins
         if not (isinstance(bins, int) and not isinstance(bins, bool) and bins >= 1):
             raise ValueError(f"dro_bins must be an integer >= 1, got {bins!r}.")
+        dims = self.gripper_dims
+        if not (
+            isinstance(dims, tuple)
+            and dims
+            and all(isinstance(d, int) and not isinstance(d, bool) for d in dims)
+            and len(set(dims)) == len(dims)
+        ):
+            raise ValueError(f"gripper_dims must be a non-empty tuple of distinct ints, got {dims!r}.")
 
 
 def check_step_losses(losses: Tensor, valid: Tensor) -> None:
@@ -270,8 +285,9 @@ def mix_uniform(w: Tensor, m: Tensor, mix: float | Tensor) -> Tensor:
     return (1 - mix) * m + mix * w
 
 
-def _weights_from_scores(scores_input: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor) -> Tensor:
-    """Eqs. 4-8 plus the schedule's mixing, on already detached and checked inputs."""
+def weights_from_scores(scores_input: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor) -> Tensor:
+    """Eqs. 4-8 plus the schedule's mixing, on already detached and checked inputs (for weightings that score
+    steps by something other than their loss; not exported)."""
     dtype = scores_input.dtype
     x = scores_input.float() if dtype in HALF_DTYPES else scores_input
     m = valid.to(x.dtype)
@@ -347,7 +363,7 @@ def tar_weights(
     """
     params = WeightingParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
     check_step_losses(losses, valid)
-    return _weights_from_scores(losses.detach(), valid, params, mix)
+    return weights_from_scores(losses.detach(), valid, params, mix)
 
 
 def window_weights(losses: Tensor, slice_len: int, **params) -> Tensor:
@@ -396,7 +412,7 @@ def invert_weights(losses: Tensor, valid: Tensor, *, mix: float | Tensor = 1.0, 
     same temperature, unit mean, mixing and cap (``**params`` as in :func:`tar_weights`).
     """
     check_step_losses(losses, valid)
-    return _weights_from_scores(-losses.detach(), valid, WeightingParams(**params), mix)
+    return weights_from_scores(-losses.detach(), valid, WeightingParams(**params), mix)
 
 
 def random_weights(
@@ -414,7 +430,7 @@ def random_weights(
     """
     check_step_losses(losses, valid)
     scores = _rand_like(losses, generator, normal=True).to(losses.dtype)
-    return _weights_from_scores(scores, valid, WeightingParams(**params), mix)
+    return weights_from_scores(scores, valid, WeightingParams(**params), mix)
 
 
 def _random_order(valid: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -509,6 +525,9 @@ class Weighting:
             that :class:`~tar_rl.objectives.TARLoss` holds as a buffer, so that it is part of its
             ``state_dict()``, and replaces with ``new_state`` after each training step); ``None``
             for a weighting without state.
+        elementwise: ``weights`` scores per-element losses ``[B, L, *event, A]`` with a mask of
+            that shape and returns per-element weights (:mod:`~tar_rl.objectives.elementwise`);
+            ``False``: per-step losses ``[..., L]`` in, per-step weights out.
     """
 
     name: str
@@ -519,6 +538,7 @@ class Weighting:
     check: Callable[[WeightingParams], None] | None = None
     reads_time: bool = False
     initial_state: Callable[[WeightingParams], Tensor] | None = None
+    elementwise: bool = False
 
 
 def _param_kwargs(params: WeightingParams) -> dict:
@@ -531,7 +551,7 @@ def _uniform(losses, valid, params, mix, generator):
 
 def _tar(losses, valid, params, mix, generator):
     check_step_losses(losses, valid)
-    return _weights_from_scores(losses.detach(), valid, params, mix)
+    return weights_from_scores(losses.detach(), valid, params, mix)
 
 
 def _invert(losses, valid, params, mix, generator):

@@ -87,6 +87,7 @@ def make_objective(obj: ObjectiveConfig, steps: int, seed: int, policy: Policy) 
         focal_beta=obj.focal_beta,
         dro_eta=obj.dro_eta,
         dro_bins=obj.dro_bins,
+        gripper_dims=tuple(obj.gripper_dims),
         schedule=schedule,
         perturb_fraction=obj.perturb_fraction,
         perturb_scale=obj.perturb_scale,

@@ -94,6 +94,8 @@ class ObjectiveConfig:
             the step size ``eta > 0`` of the group weights, ``q_g <- q_g * exp(eta * mean loss of bin g / mean
             loss of the batch)`` each step, renormalised (0.01: Sagawa et al.'s step size).
         dro_bins: for ``dro_time``: the number ``G >= 1`` of bins of normalised episode time (the groups).
+        gripper_dims: for ``tar_arm``: the action dims (indices, negative from the end) averaged uniformly
+            while TAR weights the others; default ``[-1]``, the last dim (MetaWorld's gripper).
         compile: ``torch.compile`` the weighting (``tar``, ``invert``, the baselines): ``auto`` (on CUDA with
             triton: a GPU step otherwise pays ~0.5 ms of tiny kernel launches for it), ``always``
             or ``never``. Not part of a run's identity (the weights agree up to float rounding).
@@ -116,6 +118,7 @@ class ObjectiveConfig:
     focal_beta: float = 1.0
     dro_eta: float = 0.01
     dro_bins: int = 10
+    gripper_dims: list[int] = field(default_factory=lambda: [-1])
     compile: str = "auto"
 
 

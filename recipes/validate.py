@@ -280,7 +280,7 @@ def _check_objective_numbers(obj: ObjectiveConfig) -> None:
         "dro_bins",
     )
     try:  # the baselines' rules live in WeightingParams; its message names the parameter
-        WeightingParams(**{key: getattr(obj, key) for key in baselines})
+        WeightingParams(**{key: getattr(obj, key) for key in baselines}, gripper_dims=tuple(obj.gripper_dims))
     except ValueError as err:
         raise ConfigError(f"objective.{err}") from None
     if not 0 <= obj.perturb_fraction <= 1:

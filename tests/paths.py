@@ -1,4 +1,4 @@
-"""Where the repository is, for tests that read its files (benchmarks, README, examples)."""
+"""Where the repository is, for tests that read its files (benchmarks, documentation, examples)."""
 
 from pathlib import Path
 

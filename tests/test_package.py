@@ -9,7 +9,6 @@ import subprocess
 import sys
 
 import pytest
-from paths import REPO
 
 MODULES = ["tar_rl.objectives.weighting", "tar_rl.objectives.schedule", "tar_rl.objectives.tar_loss"]
 
@@ -56,28 +55,3 @@ def test_demo_runs_end_to_end(capsys):
     assert set(report["weightings"]) == {"uniform", "tar"}
     for row in report["weightings"].values():
         assert all(math.isfinite(v) and v >= 0 for v in row.values())
-
-
-def test_readme_training_example_runs(tmp_path, monkeypatch):
-    """The README's training loop, run for a few steps instead of 1,000."""
-    readme = (REPO / "README.md").read_text()
-    block = readme.split("```python\n")[1].split("```")[0]
-    assert "for step in range(1_000):" in block
-    monkeypatch.chdir(tmp_path)
-    scope: dict = {}
-    exec(compile(block.replace("range(1_000)", "range(5)"), "README.md", "exec"), scope)
-    assert int(scope["loss"].schedule_step) == 5
-    assert math.isfinite(scope["out"]["loss_tar"].item())
-
-
-@pytest.mark.slow
-def test_readme_metaworld_example_runs(tmp_path, monkeypatch):
-    """The README's MetaWorld block: a tiny dataset, a segment batch, an expert evaluation, the table."""
-    readme = (REPO / "README.md").read_text()
-    block = next(b.split("```")[0] for b in readme.split("```python\n")[1:] if "build_dataset" in b)
-    monkeypatch.chdir(tmp_path)
-    scope: dict = {}
-    exec(compile(block, "README.md", "exec"), scope)
-    assert tuple(scope["batch"].shape) == (8, 16)
-    overall = scope["table"].set_index("level").loc["overall"]
-    assert overall["success"] == 100.0  # the scripted expert solves reach

@@ -49,10 +49,21 @@ def test_bench_objective_quick_writes_csv(tmp_path):
     unavailable = df[df.unit == "unavailable"]
     assert set(unavailable.variant) <= set(bench.COMPILED)
     assert unavailable["median"].isna().all()
-    for name in ("masked_mean", "tar_paper", "tar_exact", "tilted", "truncate", "keyframe", "focal", "dro_time"):
+    weighted = (
+        "masked_mean",
+        "tar_paper",
+        "tar_exact",
+        "tilted",
+        "truncate",
+        "keyframe",
+        "focal",
+        "dro_time",
+        "tar_arm",
+    )
+    for name in weighted:
         assert name in set(measured[measured.section == "weighting"].variant)
-    # the baselines from the literature are timed in a training step beside uniform
-    baselines = {"tilted", "truncate", "keyframe", "focal", "dro_time"}
+    # the baselines from the literature and the element variants are timed in a training step beside uniform
+    baselines = {"tilted", "truncate", "keyframe", "focal", "dro_time", "tar_arm", "tar_dimnorm"}
     assert baselines <= set(paired[paired.baseline == "uniform"].variant)
 
 

@@ -641,6 +641,8 @@ NAMES = [
     "keyframe",
     "focal",
     "dro_time",
+    "tar_arm",
+    "tar_dimnorm",
 ]
 
 
@@ -665,16 +667,23 @@ def test_unknown_weighting_lists_names():
 def test_every_weighting_is_a_unit_mean_weighting(name):
     losses, valid = padded_batch()
     spec, params = WEIGHTINGS[name], WeightingParams()
-    inputs = {}
-    if spec.reads_time:  # the segments are steps 0..5, 10..15 and 20..25 of episodes of 30 steps
-        inputs["step"] = torch.arange(6) + torch.tensor([[0], [10], [20]])
-        inputs["episode_length"] = torch.full((3, 6), 30)
-    if spec.initial_state is not None:
-        inputs["state"] = spec.initial_state(params)
-    w = spec.weights(losses, valid, params, 1.0, torch.Generator().manual_seed(0), **inputs)
-    if spec.initial_state is not None:
-        w, state = w
-        assert state.shape == inputs["state"].shape and float(state.exp().sum()) == pytest.approx(1.0)
+    if spec.elementwise:  # per-element losses [B, L, 2] (the second dim doubled), reduced to step weights
+        elements = torch.stack([losses, 2 * losses], -1)
+        element_valid = valid[..., None].expand_as(elements)
+        w = spec.weights(elements, element_valid, params, 1.0, None)
+        assert w.shape == elements.shape and (w[~element_valid] == 0).all()
+        w = w.mean(-1)
+    else:
+        inputs = {}
+        if spec.reads_time:  # the segments are steps 0..5, 10..15 and 20..25 of episodes of 30 steps
+            inputs["step"] = torch.arange(6) + torch.tensor([[0], [10], [20]])
+            inputs["episode_length"] = torch.full((3, 6), 30)
+        if spec.initial_state is not None:
+            inputs["state"] = spec.initial_state(params)
+        w = spec.weights(losses, valid, params, 1.0, torch.Generator().manual_seed(0), **inputs)
+        if spec.initial_state is not None:
+            w, state = w
+            assert state.shape == inputs["state"].shape and float(state.exp().sum()) == pytest.approx(1.0)
     assert w.shape == losses.shape and w.dtype == losses.dtype
     assert torch.isfinite(w).all()
     assert (w >= 0).all()

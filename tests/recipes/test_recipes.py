@@ -150,6 +150,8 @@ def test_unknown_keys_and_options_are_refused_at_composition(override, error, na
         (["objective.keyframe_fraction=0"], "objective.keyframe_fraction"),
         (["objective.keyframe_factor=0.5"], "objective.keyframe_factor"),
         (["objective.focal_beta=-1"], "objective.focal_beta"),
+        (["objective.gripper_dims=[3,3]"], "objective.gripper_dims"),
+        (["objective.gripper_dims=[]"], "objective.gripper_dims"),
         (["objective=focal", "objective.w_max=0.5"], "objective.w_max >= 1"),
         (["objective.dro_eta=0"], "objective.dro_eta must be a finite number > 0"),
         (["objective.dro_eta=-0.5"], "objective.dro_eta must be a finite number > 0"),
@@ -301,7 +303,7 @@ def smoke_run(tmp_path_factory, data_root):
     return train(config), config
 
 
-@pytest.mark.parametrize("objective", ["tilted", "truncate", "keyframe", "focal"])
+@pytest.mark.parametrize("objective", ["tilted", "truncate", "keyframe", "focal", "tar_arm", "tar_dimnorm"])
 def test_each_baseline_trains_through_the_recipe(tmp_path, data_root, objective):
     config = tiny(
         tmp_path,

@@ -1,0 +1,386 @@
+"""TAR's tuning in the regime study's R3, as pre-registered (``results/regimes/PLAN.md``, "Tuning TAR in R3").
+
+Usage::
+
+    python benchmarks/r3_tuning.py COMMAND [--scale cpu|ci] [--out DIR] [--jobs N] [--data-root DIR] [--dry-run]
+
+Commands (every run lands in ``<out>/runs/``, named by its settings; running a command again skips finished
+runs and resumes interrupted ones):
+
+* ``tune``: R3's runs (MT50, 50 demonstrations per task, about 20 passes) for TAR over gamma x cap x
+  w_max, the two element variants (``tar_arm``, ``tar_dimnorm``) and uniform, on the tuning seeds,
+  evaluated on the tuning evaluation seed (2000) only.
+* ``select``: applies the selection rule (:func:`select`) to the finished tuning runs and writes
+  ``<out>/selected.json``; refused until every tuning run has finished, and refused to change once a
+  final run has started.
+* ``final``: the selected cell, the selected variant and uniform on the final seeds, with R3's
+  evaluation (seed 1000).
+* ``table``: ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on
+  the tuning seed, per seed) and, once final runs finished, ``final.md``/``final.csv`` (paired
+  comparisons to uniform with Holm over the two, and the MDE), all recomputed from the runs.
+* ``collect --from DIR``: copy the finished runs of a runs folder into ``<out>/runs`` (config, summary,
+  compressed logs; never checkpoints).
+
+The ``ci`` scale runs the same commands on two tasks for a few steps with a smaller grid (the tests' size).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # regimes.py and paper_experiments.py beside this script
+from paper_analysis import fmt_p
+from paper_experiments import Planner, Spec, execute, provenance
+from regimes import STUDIES, check_pairs, collect
+
+COMMANDS = ("tune", "select", "final", "table", "collect")
+BASELINE = "uniform"
+VARIANTS = ("tar_arm", "tar_dimnorm")  # in the order the plan lists them (a tie goes to the first)
+PAPER = {"gamma": 1.0, "cap": "paper", "w_max": 3.0}  # the paper's defaults
+TIE = 0.25  # points of success within which two settings tie (the plan's rule)
+SELECTED_FILE = "selected.json"
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """The tuning's sizes at one scale.
+
+    Attributes:
+        r3: R3's overrides (from ``regimes.py``), without the evaluation seed.
+        gammas, caps, w_maxes: the grid of TAR cells.
+        tune_seeds: training seeds of the tuning runs.
+        tune_eval_seed: the tuning evaluation seed.
+        final_seeds: training seeds of the final runs.
+        final_eval_seed: R3's evaluation seed.
+    """
+
+    r3: tuple[str, ...]
+    gammas: tuple[float, ...]
+    caps: tuple[str, ...]
+    w_maxes: tuple[float, ...]
+    tune_seeds: tuple[int, ...]
+    tune_eval_seed: int
+    final_seeds: tuple[int, ...]
+    final_eval_seed: int
+
+
+def _without_eval_seed(overrides: Sequence[str]) -> tuple[str, ...]:
+    return tuple(o for o in overrides if not o.startswith("eval.seed="))
+
+
+TUNINGS = {
+    "cpu": Tuning(
+        r3=_without_eval_seed(STUDIES["cpu"].r3),
+        gammas=(0.25, 0.5, 1.0),
+        caps=("paper", "exact"),
+        w_maxes=(1.5, 3.0),
+        tune_seeds=(0, 1, 2, 3),
+        tune_eval_seed=2000,
+        final_seeds=(0, 1, 2, 3, 4, 5, 6, 7),
+        final_eval_seed=1000,
+    ),
+    "ci": Tuning(
+        r3=_without_eval_seed(STUDIES["ci"].r3),
+        gammas=(0.5,),
+        caps=("paper",),
+        w_maxes=(3.0,),
+        tune_seeds=(0,),
+        tune_eval_seed=2000,
+        final_seeds=(0,),
+        final_eval_seed=1000,
+    ),
+}
+
+
+# -- Settings ----------------------------------------------------------------------------------------
+
+
+def cell_name(gamma: float, cap: str, w_max: float) -> str:
+    return f"tar-g{gamma:g}-{cap}-w{w_max:g}"
+
+
+def settings(tuning: Tuning) -> dict[str, tuple[str, ...]]:
+    """Every tuned setting by name (the TAR cells, then the variants, then uniform) -> its objective overrides."""
+    out = {
+        cell_name(g, c, w): ("objective=tar", f"objective.gamma={g}", f"objective.cap={c}", f"objective.w_max={w}")
+        for g in tuning.gammas
+        for c in tuning.caps
+        for w in tuning.w_maxes
+    }
+    out.update({v: (f"objective={v}",) for v in VARIANTS})
+    out[BASELINE] = (f"objective={BASELINE}",)
+    return out
+
+
+def _specs(planner: Planner, tuning: Tuning, chosen: dict[str, tuple[str, ...]], seeds, eval_seed) -> dict:
+    return {
+        name: [planner.spec(*tuning.r3, f"eval.seed={eval_seed}", f"seed={s}", *objective) for s in seeds]
+        for name, objective in chosen.items()
+    }
+
+
+def tune_specs(planner: Planner, tuning: Tuning) -> dict[str, list[Spec]]:
+    return _specs(planner, tuning, settings(tuning), tuning.tune_seeds, tuning.tune_eval_seed)
+
+
+def final_specs(planner: Planner, tuning: Tuning, selected: dict) -> dict[str, list[Spec]]:
+    every = settings(tuning)
+    chosen = {name: every[name] for name in (selected["cell"], selected["variant"], BASELINE)}
+    return _specs(planner, tuning, chosen, tuning.final_seeds, tuning.final_eval_seed)
+
+
+# -- The selection rule ------------------------------------------------------------------------------
+
+
+def distance(name: str) -> tuple[int, float]:
+    """How far a TAR cell lies from the paper's defaults: (settings changed, size of the change).
+
+    The size adds ``|log2|`` of gamma's and w_max's ratios to the defaults and 1 for the exact cap, so
+    that gamma 0.5 is a smaller change than gamma 0.25 and one changed setting is nearer than two.
+    """
+    _, g, cap, w = name.split("-")
+    gamma, w_max = float(g[1:]), float(w[1:])
+    changes = [
+        abs(math.log2(gamma / PAPER["gamma"])),
+        float(cap != PAPER["cap"]),
+        abs(math.log2(w_max / PAPER["w_max"])),
+    ]
+    return sum(c > 0 for c in changes), sum(changes)
+
+
+def mean_paired_delta(success: dict[int, float], uniform: dict[int, float]) -> float:
+    """Mean over the seeds both have of (setting - uniform) overall success; NaN when none is shared."""
+    shared = sorted(set(success) & set(uniform))
+    return sum(success[s] - uniform[s] for s in shared) / len(shared) if shared else math.nan
+
+
+def select(success: dict[str, dict[int, float]]) -> dict:
+    """The plan's rule on the tuning seed's overall success (``setting -> seed -> %``, uniform under ``"uniform"``).
+
+    The TAR cell and, separately, the variant with the highest mean paired difference to uniform;
+    settings within :data:`TIE` points of the best tie, and a tie goes to the cell nearest the paper's
+    defaults (:func:`distance`; then the higher difference) and to the variant listed first in
+    :data:`VARIANTS`. Returns ``{"cell", "variant", "deltas"}``.
+    """
+    uniform = success[BASELINE]
+    deltas = {name: mean_paired_delta(values, uniform) for name, values in success.items() if name != BASELINE}
+    if any(math.isnan(d) for d in deltas.values()):
+        raise SystemExit("r3_tuning: a setting shares no seed with uniform; every tuning run must finish first")
+    cells = [n for n in deltas if n.startswith("tar-")]
+    best = max(deltas[n] for n in cells)
+    cell = min((n for n in cells if deltas[n] >= best - TIE), key=lambda n: (distance(n), -deltas[n]))
+    best_variant = max(deltas[v] for v in VARIANTS)
+    variant = next(v for v in VARIANTS if deltas[v] >= best_variant - TIE)
+    return {"cell": cell, "variant": variant, "deltas": {n: round(d, 6) for n, d in deltas.items()}}
+
+
+# -- Reading runs --------------------------------------------------------------------------------------
+
+
+def overall_success(specs: dict[str, list[Spec]]) -> tuple[dict[str, dict[int, float]], dict[str, list]]:
+    """``setting -> seed -> overall success %`` of the finished runs, and the loaded runs per setting."""
+    from tar_rl.report import load_run, run_percent
+
+    success: dict[str, dict[int, float]] = {}
+    loaded: dict[str, list] = {}
+    for name, group in specs.items():
+        runs = [load_run(s.run_dir) for s in group if s.finished]
+        loaded[name] = runs
+        success[name] = {r.seed: run_percent(r)[("success", "overall")] for r in runs}
+    return success, loaded
+
+
+def _check_commits(loaded: dict[str, list]) -> None:
+    for name, runs in loaded.items():
+        if name != BASELINE:
+            check_pairs([*runs, *loaded[BASELINE]])
+
+
+def tuning_table(success: dict[str, dict[int, float]], tuning: Tuning) -> tuple[str, pd.DataFrame]:
+    """Every setting's overall success and paired difference to uniform on the tuning seed, per seed."""
+    from tar_rl.report import paired_t
+
+    uniform = success.get(BASELINE, {})
+    rows = []
+    for name, values in success.items():
+        shared = sorted(set(values) & set(uniform))
+        st = paired_t([values[s] - uniform[s] for s in shared])
+        rows.append(
+            {
+                "setting": name,
+                "n_seeds": len(values),
+                "success": sum(values.values()) / len(values) if values else math.nan,
+                "n_pairs": len(shared),
+                "delta": st["mean"] if name != BASELINE else 0.0,
+                "ci_low": st["ci_low"] if name != BASELINE else math.nan,
+                "ci_high": st["ci_high"] if name != BASELINE else math.nan,
+                **{f"seed{s}": values.get(s, math.nan) for s in tuning.tune_seeds},
+            }
+        )
+    df = pd.DataFrame(rows)
+    seeds = " | ".join(f"seed {s}" for s in tuning.tune_seeds)
+    lines = [
+        f"| setting | success % | Δ vs uniform [95% CI] | pairs | {seeds} |",
+        "|---" * (4 + len(tuning.tune_seeds)) + "|",
+    ]
+    for r in rows:
+        ci = "" if math.isnan(r["ci_low"]) else f" [{r['ci_low']:+.2f}, {r['ci_high']:+.2f}]"
+        delta = "-" if r["setting"] == BASELINE or not r["n_pairs"] else f"{r['delta']:+.2f}{ci}"
+        per_seed = " | ".join("-" if math.isnan(r[f"seed{s}"]) else f"{r[f'seed{s}']:.1f}" for s in tuning.tune_seeds)
+        lines.append(f"| {r['setting']} | {r['success']:.1f} | {delta} | {r['n_pairs']} | {per_seed} |")
+    md = [
+        "# TAR's tuning in R3: every setting on the tuning seed",
+        "",
+        f"R3's runs evaluated on eval.seed = {tuning.tune_eval_seed} only (the final comparisons use "
+        f"{tuning.final_eval_seed}). Success in %; Δ = setting - uniform over paired seeds.",
+        "",
+        *lines,
+    ]
+    return "\n".join(md) + "\n", df
+
+
+def final_table(loaded: dict[str, list], selected: dict) -> tuple[str, pd.DataFrame]:
+    """The selected cell and variant against uniform on the final seeds: paired t, Holm over the two, MDE."""
+    from tar_rl.report import holm, min_detectable_effect, paired_table
+
+    rows = []
+    for role in ("cell", "variant"):
+        name = selected[role]
+        if not loaded.get(name) or not loaded.get(BASELINE):
+            continue
+        paired = paired_table([*loaded[BASELINE], *loaded[name]], file=io.StringIO())
+        rec = paired[(paired["metric"] == "success") & (paired["level"] == "overall")].iloc[0]
+        rows.append(
+            {
+                "role": role,
+                "setting": name,
+                "pairs": int(rec["n_pairs"]),
+                "uniform": rec["baseline_mean"],
+                "setting_success": rec["objective_mean"],
+                "delta": rec["delta_mean"],
+                "ci_low": rec["ci_low"],
+                "ci_high": rec["ci_high"],
+                "p": rec["p_value"],
+                "mde": min_detectable_effect(rec["delta_std"], int(rec["n_pairs"])),
+            }
+        )
+    for r, p in zip(rows, holm([r["p"] for r in rows])):
+        r["holm_p"] = p
+    lines = [
+        "| role | setting | pairs | success % U / S | Δ [95% CI] | p | Holm p | MDE (80%) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['role']} | {r['setting']} | {r['pairs']} | {r['uniform']:.1f} / {r['setting_success']:.1f} "
+            f"| {r['delta']:+.2f} [{r['ci_low']:+.2f}, {r['ci_high']:+.2f}] | {fmt_p(r['p'])} | {fmt_p(r['holm_p'])} "
+            f"| {r['mde']:.2f} |"
+        )
+    md = ["# TAR's tuning in R3: the selected settings on the final seed", "", *lines]
+    return "\n".join(md) + "\n", pd.DataFrame(rows)
+
+
+# -- Command line --------------------------------------------------------------------------------------
+
+
+def _flatten(specs: dict[str, list[Spec]]) -> list[Spec]:
+    """Seed by seed (every setting of the first seed, then the next), so a sweep cut short leaves whole seeds."""
+    groups = list(specs.values())
+    return [group[i] for i in range(max(map(len, groups), default=0)) for group in groups if i < len(group)]
+
+
+def _read_selected(out: Path) -> dict | None:
+    path = out / SELECTED_FILE
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="r3_tuning.py", description="TAR's pre-registered tuning in R3: runs and tables.")
+    p.add_argument("command", choices=COMMANDS)
+    p.add_argument("--scale", default="cpu", choices=sorted(TUNINGS))
+    p.add_argument("--out", default=None, help="results folder (default: benchmarks/results/regimes/tuning)")
+    p.add_argument("--data-root", default="datasets", help="dataset cache folder (default: ./datasets)")
+    p.add_argument("--jobs", type=int, default=None, help="runs trained at once (default: the scale's)")
+    p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
+    p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point (module docstring). Returns 0, or 1 when a run failed (the others still ran)."""
+    from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = _parser().parse_args(argv)
+    tuning, scale = TUNINGS[args.scale], STUDIES[args.scale].scale
+    jobs = scale.jobs if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise SystemExit(f"r3_tuning: --jobs must be >= 1, got {jobs}")
+    if args.out is None and args.scale != "cpu":
+        raise SystemExit("r3_tuning: --out is required with --scale ci (the default folder holds the results)")
+    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "regimes" / "tuning"
+    planner = Planner(scale, out, args.data_root)
+    logs = out / "logs"
+    failed: list[Spec] = []
+    selected = _read_selected(out)
+    if args.command == "collect":
+        if not args.source:
+            raise SystemExit("r3_tuning: collect needs --from DIR (a runs folder)")
+        names = collect(Path(args.source), out)
+        print(f"copied {len(names)} finished run(s) into {out / 'runs'}: " + ", ".join(names))
+    elif args.command == "tune":
+        failed = execute(scale, _flatten(tune_specs(planner, tuning)), jobs, args.dry_run, logs)
+    elif args.command == "select":
+        specs = tune_specs(planner, tuning)
+        unfinished = [s.run_dir.name for s in _flatten(specs) if not s.finished]
+        if unfinished:
+            names = ", ".join(unfinished[:4])
+            raise SystemExit(f"r3_tuning: {len(unfinished)} tuning run(s) have not finished: {names}")
+        success, loaded = overall_success(specs)
+        _check_commits(loaded)
+        choice = select(success)
+        if selected is not None and (selected["cell"], selected["variant"]) != (choice["cell"], choice["variant"]):
+            started = [s for s in _flatten(final_specs(planner, tuning, selected)) if s.run_dir.exists()]
+            if started:
+                raise SystemExit(f"r3_tuning: final runs of {out / SELECTED_FILE}'s choice have started; not changed")
+        write_json_atomic(choice, out / SELECTED_FILE)
+        print(f"selected: cell {choice['cell']}, variant {choice['variant']} ({out / SELECTED_FILE})")
+    elif args.command == "final":
+        if selected is None:
+            raise SystemExit(f"r3_tuning: no {out / SELECTED_FILE} yet; run `select` first")
+        failed = execute(scale, _flatten(final_specs(planner, tuning, selected)), jobs, args.dry_run, logs)
+    elif args.command == "table":
+        success, loaded = overall_success(tune_specs(planner, tuning))
+        if not any(success.values()):
+            raise SystemExit("r3_tuning: no finished tuning run yet")
+        _check_commits({k: v for k, v in loaded.items() if v})
+        md, df = tuning_table(success, tuning)
+        atomic_write(out / "tuning.md", lambda f: f.write(md))
+        write_csv_atomic(df.round(6), out / "tuning.csv")
+        print(md)
+        if selected is not None:
+            _, final = overall_success(final_specs(planner, tuning, selected))
+            if final.get(BASELINE) and (final.get(selected["cell"]) or final.get(selected["variant"])):
+                _check_commits({k: v for k, v in final.items() if v})
+                md, df = final_table(final, selected)
+                atomic_write(out / "final.md", lambda f: f.write(md))
+                write_csv_atomic(df.round(6), out / "final.csv")
+                print(md)
+        write_json_atomic(provenance(scale, argv, "r3_tuning.py"), out / "provenance.json")
+    if failed:
+        print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,122 @@
+"""TAR's tuning in R3 (``benchmarks/r3_tuning.py``): the plan, the selection rule on hand-made numbers, and the
+commands at the ci scale."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+
+import pandas as pd
+import pytest
+from paths import REPO
+
+BENCH = REPO / "benchmarks" / "r3_tuning.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("r3_tuning", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def tuning():
+    return _load()
+
+
+def test_the_plan_is_the_pre_registered_grid(tuning):
+    cpu = tuning.TUNINGS["cpu"]
+    names = list(tuning.settings(cpu))
+    cells = [n for n in names if n.startswith("tar-")]
+    assert len(cells) == 12 and names[12:] == ["tar_arm", "tar_dimnorm", "uniform"]
+    assert "tar-g1-paper-w3" in cells and "tar-g0.25-exact-w1.5" in cells
+    assert cpu.tune_seeds == (0, 1, 2, 3) and cpu.final_seeds == tuple(range(8))
+    assert (cpu.tune_eval_seed, cpu.final_eval_seed) == (2000, 1000)
+    # R3's settings without its evaluation seed: MT50, 50 demonstrations, 3,743 steps
+    assert "data.tasks=[mt50]" in cpu.r3 and "data.n_demos=50" in cpu.r3 and "optim.steps=3743" in cpu.r3
+    assert not any(o.startswith("eval.seed=") for o in cpu.r3)
+
+
+def test_distance_to_the_paper_defaults(tuning):
+    d = tuning.distance
+    assert d("tar-g1-paper-w3") == (0, 0.0)
+    assert d("tar-g0.5-paper-w3") == (1, 1.0)
+    assert d("tar-g0.25-paper-w3") == (1, 2.0)
+    assert d("tar-g1-exact-w3") == (1, 1.0)
+    assert d("tar-g1-paper-w1.5") == (1, 1.0)
+    assert d("tar-g0.5-exact-w1.5") == (3, 3.0)
+
+
+def _success(deltas: dict[str, float]) -> dict[str, dict[int, float]]:
+    """Per setting, seeds 0-3 at uniform's values (80, 82, 84, 86) plus the setting's difference."""
+    uniform = {0: 80.0, 1: 82.0, 2: 84.0, 3: 86.0}
+    return {"uniform": uniform, **{name: {s: v + d for s, v in uniform.items()} for name, d in deltas.items()}}
+
+
+def test_select_takes_the_highest_mean_paired_difference(tuning):
+    success = _success({"tar-g1-paper-w3": -2.0, "tar-g0.5-exact-w1.5": 1.0, "tar_arm": 0.5, "tar_dimnorm": -1.0})
+    chosen = tuning.select(success)
+    assert chosen["cell"] == "tar-g0.5-exact-w1.5" and chosen["variant"] == "tar_arm"
+    assert chosen["deltas"]["tar-g1-paper-w3"] == pytest.approx(-2.0)
+
+
+def test_a_tie_within_a_quarter_point_goes_to_the_setting_nearest_the_paper(tuning):
+    # 1.0 vs 0.8: a tie; g0.5 (one setting changed) is nearer than g0.5 + exact (two)
+    success = _success({"tar-g0.5-exact-w3": 1.0, "tar-g0.5-paper-w3": 0.8, "tar-g0.25-paper-w3": 0.9})
+    success.update({"tar_arm": success["uniform"], "tar_dimnorm": success["uniform"]})
+    assert tuning.select(success)["cell"] == "tar-g0.5-paper-w3"
+    # 1.0 vs 0.7: no tie
+    success = _success({"tar-g0.5-exact-w3": 1.0, "tar-g0.5-paper-w3": 0.7, "tar_arm": 0, "tar_dimnorm": 0})
+    assert tuning.select(success)["cell"] == "tar-g0.5-exact-w3"
+    # the variants tie at 0.2 apart: the first listed; 0.3 apart: the better
+    for gap, variant in ((0.2, "tar_arm"), (0.3, "tar_dimnorm")):
+        success = _success({"tar-g1-paper-w3": 0, "tar_arm": 0.0, "tar_dimnorm": gap})
+        assert tuning.select(success)["variant"] == variant
+
+
+def test_select_refuses_a_setting_without_a_shared_seed(tuning):
+    success = _success({"tar-g1-paper-w3": 0, "tar_arm": 0, "tar_dimnorm": 0})
+    success["tar_arm"] = {7: 50.0}
+    with pytest.raises(SystemExit, match="shares no seed with uniform"):
+        tuning.select(success)
+
+
+def test_the_tuning_table_by_hand(tuning):
+    ci = tuning.TUNINGS["cpu"]
+    success = _success({"tar-g1-paper-w3": -2.0, "tar_arm": 0.5, "tar_dimnorm": 1.0})
+    success["tar_dimnorm"][2] += 4.0  # differences 1, 1, 5, 1: mean 2
+    md, df = tuning.tuning_table(success, ci)
+    rows = df.set_index("setting")
+    assert rows.loc["tar_dimnorm", "delta"] == pytest.approx(2.0)
+    assert rows.loc["tar_dimnorm", "success"] == pytest.approx((81 + 83 + 89 + 87) / 4)
+    assert rows.loc["tar-g1-paper-w3", "delta"] == pytest.approx(-2.0)
+    assert rows.loc["uniform", "seed3"] == 86.0
+    assert "| tar_arm | 83.5 | +0.50" in md
+
+
+@pytest.mark.slow
+def test_the_commands_at_the_ci_scale(tuning, tmp_path, data_root, capsys):
+    out = tmp_path / "tuning"
+    common = ["--scale", "ci", "--out", str(out), "--data-root", str(data_root)]
+    with pytest.raises(SystemExit, match=r"no .*selected\.json yet"):
+        tuning.main(["final", *common])
+    with pytest.raises(SystemExit, match="4 tuning run"):
+        tuning.main(["select", *common])
+    assert tuning.main(["tune", *common]) == 0
+    summaries = [json.loads(p.read_text()) for p in (out / "runs").glob("*/summary.json")]
+    assert len(summaries) == 4 and all(s["config"]["eval"]["seed"] == 2000 for s in summaries)
+    assert sorted(s["objective"] for s in summaries) == ["tar", "tar_arm", "tar_dimnorm", "uniform"]
+    assert tuning.main(["select", *common]) == 0
+    selected = json.loads((out / "selected.json").read_text())
+    assert selected["cell"] == "tar-g0.5-paper-w3" and selected["variant"] in ("tar_arm", "tar_dimnorm")
+    capsys.readouterr()
+    assert tuning.main(["final", *common, "--dry-run"]) == 0
+    plan = capsys.readouterr().out
+    assert "3 runs: 0 finished" in plan and plan.count("eval.seed=1000") == 3
+    assert tuning.main(["table", *common]) == 0
+    table = pd.read_csv(out / "tuning.csv")
+    assert sorted(table.setting) == sorted(["tar-g0.5-paper-w3", "tar_arm", "tar_dimnorm", "uniform"])
+    assert not (out / "final.md").exists()  # no final run has finished
