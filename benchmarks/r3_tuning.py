@@ -292,7 +292,7 @@ def final_table(loaded: dict[str, list], selected: dict) -> tuple[str, pd.DataFr
 # -- Command line --------------------------------------------------------------------------------------
 
 
-def _flatten(specs: dict[str, list[Spec]]) -> list[Spec]:
+def seed_major(specs: dict[str, list[Spec]]) -> list[Spec]:
     """Seed by seed (every setting of the first seed, then the next), so a sweep cut short leaves whole seeds."""
     groups = list(specs.values())
     return [group[i] for i in range(max(map(len, groups), default=0)) for group in groups if i < len(group)]
@@ -338,10 +338,10 @@ def main(argv: list[str] | None = None) -> int:
         names = collect(Path(args.source), out)
         print(f"copied {len(names)} finished run(s) into {out / 'runs'}: " + ", ".join(names))
     elif args.command == "tune":
-        failed = execute(scale, _flatten(tune_specs(planner, tuning)), jobs, args.dry_run, logs)
+        failed = execute(scale, seed_major(tune_specs(planner, tuning)), jobs, args.dry_run, logs)
     elif args.command == "select":
         specs = tune_specs(planner, tuning)
-        unfinished = [s.run_dir.name for s in _flatten(specs) if not s.finished]
+        unfinished = [s.run_dir.name for s in seed_major(specs) if not s.finished]
         if unfinished:
             names = ", ".join(unfinished[:4])
             raise SystemExit(f"r3_tuning: {len(unfinished)} tuning run(s) have not finished: {names}")
@@ -349,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         _check_commits(loaded)
         choice = select(success)
         if selected is not None and (selected["cell"], selected["variant"]) != (choice["cell"], choice["variant"]):
-            started = [s for s in _flatten(final_specs(planner, tuning, selected)) if s.run_dir.exists()]
+            started = [s for s in seed_major(final_specs(planner, tuning, selected)) if s.run_dir.exists()]
             if started:
                 raise SystemExit(f"r3_tuning: final runs of {out / SELECTED_FILE}'s choice have started; not changed")
         write_json_atomic(choice, out / SELECTED_FILE)
@@ -357,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "final":
         if selected is None:
             raise SystemExit(f"r3_tuning: no {out / SELECTED_FILE} yet; run `select` first")
-        failed = execute(scale, _flatten(final_specs(planner, tuning, selected)), jobs, args.dry_run, logs)
+        failed = execute(scale, seed_major(final_specs(planner, tuning, selected)), jobs, args.dry_run, logs)
     elif args.command == "table":
         success, loaded = overall_success(tune_specs(planner, tuning))
         if not any(success.values()):

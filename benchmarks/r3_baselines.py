@@ -1,0 +1,217 @@
+"""The temporal weightings from the literature beside TAR in the regime study's R3 (``results/regimes/PLAN.md``,
+"Baselines in R3"), as commands.
+
+Usage::
+
+    python benchmarks/r3_baselines.py COMMAND [--scale cpu|ci] [--out DIR] [--jobs N] [--data-root DIR] [--dry-run]
+
+Commands (runs land in ``<out>/runs/``, named by their settings; running again skips finished runs and resumes
+interrupted ones):
+
+* ``run``: first uniform's seed-0 run again (the reproduction check below), then every baseline
+  (``tilted``, ``truncate``, ``keyframe``, ``focal``, ``dro_time``) at its default settings with R3's
+  settings, seed by seed; with ``--uniform`` also every uniform seed (needed when the check fails).
+* ``table``: Table III extended with the baselines (success per difficulty group and overall, the paired
+  difference of the overall success to uniform with its 95% CI and p, Holm over the baseline rows), beside
+  R3's uniform and TAR rows, recomputed from the runs (``table.md``, ``table.csv``, ``paired.csv``).
+* ``collect --from DIR``: copy finished runs into ``<out>/runs`` (config, summary, compressed logs).
+
+**Pairing with R3's uniform runs.** The baselines are trained at a later commit than R3's runs, and the study
+pairs only runs of one commit and machine. Training is deterministic on the CPU, so ``run`` trains uniform's
+seed 0 again at the baselines' commit: when its per-rollout results equal those of R3's committed seed-0 run,
+the code paths the uniform runs take have not changed and the baselines pair with R3's uniform runs; otherwise
+``table`` refuses that pairing and the uniform runs are trained again beside the baselines (``run --uniform``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the other benchmark scripts beside this script
+from paper_analysis import controls_markdown, fmt_p
+from paper_experiments import Planner, Spec, execute, provenance
+from r3_tuning import seed_major
+from regimes import STUDIES, _ints, check_pairs, collect, r3_specs
+
+COMMANDS = ("run", "table", "collect")
+BASELINE, TREATMENT = "uniform", "tar"
+WEIGHTINGS = ("tilted", "truncate", "keyframe", "focal", "dro_time")
+# The rollout columns that must agree for a reproduced run to stand in for the committed one.
+REPRODUCED_COLUMNS = ("task", "variation_seed", "variation_index", "success", "steps")
+
+
+def baseline_specs(planner: Planner, study, weightings=WEIGHTINGS) -> dict[str, list[Spec]]:
+    """The baselines' runs at R3's settings and seeds, by weighting."""
+    return {w: [planner.spec(*study.r3, f"seed={s}", f"objective={w}") for s in study.scale.seeds] for w in weightings}
+
+
+def uniform_specs(planner: Planner, study) -> list[Spec]:
+    return [planner.spec(*study.r3, f"seed={s}", f"objective={BASELINE}") for s in study.scale.seeds]
+
+
+def r3_runs(study, regimes_out: Path) -> dict[str, list[Spec]]:
+    """R3's committed runs (uniform and TAR) as planned by ``regimes.py``, by objective."""
+    planner = Planner(study.scale, regimes_out, "datasets")
+    specs = r3_specs(study, planner)
+    return {o: [s for s in specs if s.config["objective"]["name"] == o] for o in (BASELINE, TREATMENT)}
+
+
+def final_rollouts(run_dir: Path) -> pd.DataFrame:
+    """The final evaluation's rollouts of a run (:data:`REPRODUCED_COLUMNS`), in a fixed order."""
+    from tar_rl import runs
+    from tar_rl.report import run_file
+
+    path = run_file(run_dir, runs.ROLLOUTS_FILE)
+    if not path.is_file():
+        return pd.DataFrame(columns=list(REPRODUCED_COLUMNS))
+    df = pd.read_csv(path)
+    cols = list(REPRODUCED_COLUMNS)
+    return df[df["step"] == df["step"].max()][cols].sort_values(cols[:3]).reset_index(drop=True)
+
+
+def reproduces(run_dir: Path, committed_dir: Path) -> tuple[bool, str]:
+    """Whether a reproduced run's final per-rollout results equal the committed run's, and how many differ."""
+    mine, theirs = final_rollouts(run_dir), final_rollouts(committed_dir)
+    if mine.empty or theirs.empty:
+        return False, "one of the two runs has no evaluation"
+    if mine.shape != theirs.shape:
+        return False, f"{len(mine)} rollouts against {len(theirs)}"
+    differ = int((mine != theirs).any(axis=1).sum())
+    return differ == 0, f"{differ} of {len(theirs)} rollouts differ"
+
+
+def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.DataFrame, pd.DataFrame]:
+    """Table III with the baselines: markdown, the compare table and the paired table with Holm over the baselines."""
+    from tar_rl.report import compare, holm, paired_table
+
+    done = [r for r in runs if r.finished]
+    summary = compare(done, file=io.StringIO())
+    paired = paired_table(done, file=io.StringIO())
+    overall = paired[(paired["metric"] == "success") & (paired["level"] == "overall")]
+    rows = overall[overall["objective"].isin(WEIGHTINGS)]
+    paired["holm_p"] = math.nan
+    for index, p in zip(rows.index, holm(list(rows["p_value"]))):
+        paired.loc[index, "holm_p"] = p
+    family = done[0].policy
+    holm_lines = ["| objective | Δ overall vs uniform | p | Holm p (over the baselines) |", "|---|---|---|---|"]
+    for rec in paired.loc[rows.index].to_dict("records"):
+        holm_lines.append(
+            f"| {rec['objective']} | {rec['delta_mean']:+.2f} | {fmt_p(rec['p_value'])} | {fmt_p(rec['holm_p'])} |"
+        )
+    md = "\n".join(
+        [
+            "# Table III extended: the baselines from the literature in R3",
+            "",
+            "R3's settings (MT50, 50 demonstrations per task, about 20 passes, 20 rollouts per task at seed 1000). "
+            "Success % (mean ± std over seeds) per difficulty group and overall, and the paired difference of the "
+            "overall success to uniform (95% CI, paired t-test). Every weighting at its default settings.",
+            "",
+            f"Uniform and TAR rows: {uniform_source} ({reproduction}).",
+            "",
+            controls_markdown(paired, summary, family),
+            "",
+            *holm_lines,
+        ]
+    )
+    return md + "\n", summary, paired
+
+
+def _names(text: str) -> tuple[str, ...]:
+    names = tuple(v.strip() for v in text.split(",") if v.strip())
+    unknown = [n for n in names if n not in WEIGHTINGS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"expected names from {', '.join(WEIGHTINGS)}, got {text!r}")
+    return names
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="r3_baselines.py", description="The baselines from the literature in R3.")
+    p.add_argument("command", choices=COMMANDS)
+    p.add_argument("--scale", default="cpu", choices=sorted(STUDIES))
+    p.add_argument("--out", default=None, help="results folder (default: benchmarks/results/regimes/baselines)")
+    p.add_argument("--regimes", default=None, help="the regime study's folder (default: benchmarks/results/regimes)")
+    p.add_argument("--data-root", default="datasets", help="dataset cache folder (default: ./datasets)")
+    p.add_argument("--jobs", type=int, default=None, help="runs trained at once (default: the scale's)")
+    p.add_argument("--uniform", action="store_true", help="run: also train every uniform seed beside the baselines")
+    p.add_argument("--seeds", type=_ints, default=None, help="override the seeds (default: the scale's)")
+    p.add_argument(
+        "--weightings", type=_names, default=WEIGHTINGS, help=f"only these baselines (default: {','.join(WEIGHTINGS)})"
+    )
+    p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
+    p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point (module docstring). Returns 0, or 1 when a run failed (the others still ran)."""
+    from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
+    from tar_rl.report import load_run
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = _parser().parse_args(argv)
+    study = STUDIES[args.scale]
+    if args.seeds is not None:
+        study = replace(study, scale=replace(study.scale, seeds=args.seeds))
+    jobs = study.scale.jobs if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise SystemExit(f"r3_baselines: --jobs must be >= 1, got {jobs}")
+    if (args.out is None or args.regimes is None) and args.scale != "cpu":
+        raise SystemExit("r3_baselines: --out and --regimes are required with --scale ci")
+    here = Path(__file__).resolve().parent / "results" / "regimes"
+    out = Path(args.out) if args.out else here / "baselines"
+    regimes_out = Path(args.regimes) if args.regimes else here
+    planner = Planner(study.scale, out, args.data_root)
+    uniform = uniform_specs(planner, study)
+    if args.command == "collect":
+        if not args.source:
+            raise SystemExit("r3_baselines: collect needs --from DIR (a runs folder)")
+        names = collect(Path(args.source), out)
+        print(f"copied {len(names)} finished run(s) into {out / 'runs'}: " + ", ".join(names))
+        return 0
+    if args.command == "run":
+        specs = [uniform[0], *seed_major(baseline_specs(planner, study, args.weightings))]
+        if args.uniform:
+            specs = [*uniform, *specs]
+        failed = execute(study.scale, specs, jobs, args.dry_run, out / "logs")
+        if failed:
+            print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
+            return 1
+        return 0
+    # table
+    committed = r3_runs(study, regimes_out)
+    ok, why = reproduces(uniform[0].run_dir, committed[BASELINE][0].run_dir)
+    own_uniform = [s for s in uniform if s.finished]
+    planned = baseline_specs(planner, study, args.weightings)
+    baselines = [load_run(s.run_dir) for group in planned.values() for s in group if s.finished]
+    if not baselines:
+        raise SystemExit("r3_baselines: no finished baseline run yet")
+    if ok:
+        base = [load_run(s.run_dir) for s in committed[BASELINE] + committed[TREATMENT] if s.finished]
+        source, note = "R3's committed runs", f"uniform's seed 0 trained again at the baselines' commit: {why}"
+    elif len(own_uniform) == len(uniform):
+        base = [load_run(s.run_dir) for s in own_uniform]
+        source, note = "uniform trained beside the baselines; TAR's row left out (another commit)", why
+        check_pairs([*base, *baselines])
+    else:
+        raise SystemExit(
+            f"r3_baselines: uniform's seed 0 trained again does not reproduce R3's committed run ({why}); "
+            "train every uniform seed beside the baselines with `run --uniform`"
+        )
+    md, summary, paired = table([*base, *baselines], source, note)
+    atomic_write(out / "table.md", lambda f: f.write(md))
+    write_csv_atomic(summary.round(6), out / "table.csv")
+    write_csv_atomic(paired.round(6), out / "paired.csv")
+    write_json_atomic(provenance(study.scale, argv, "r3_baselines.py"), out / "provenance.json")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,98 @@
+"""The baselines from the literature in R3 (``benchmarks/r3_baselines.py``): the plan, the reproduction check
+and the commands at the ci scale."""
+
+from __future__ import annotations
+
+import gzip
+import importlib.util
+import shutil
+import sys
+
+import pandas as pd
+import pytest
+from paths import REPO
+
+BENCH = REPO / "benchmarks"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def baselines():
+    return _load("r3_baselines")
+
+
+def _rollouts(path, rows):
+    path.mkdir(parents=True, exist_ok=True)
+    columns = ["task", "variation_seed", "variation_index", "success", "steps", "step"]
+    pd.DataFrame(rows, columns=columns).to_csv(path / "eval_rollouts.csv", index=False)
+
+
+def test_reproduction_compares_the_final_evaluation_rollout_by_rollout(baselines, tmp_path):
+    first = [("reach", 1000, 0, True, 40, 5), ("reach", 1000, 1, False, 500, 5)]
+    final = [("reach", 1000, 1, False, 500, 10), ("reach", 1000, 0, True, 40, 10)]
+    _rollouts(tmp_path / "a", first + final)
+    _rollouts(tmp_path / "b", list(reversed(final)))  # another order, no intermediate evaluation
+    assert baselines.reproduces(tmp_path / "a", tmp_path / "b") == (True, "0 of 2 rollouts differ")
+    _rollouts(tmp_path / "c", [("reach", 1000, 0, True, 41, 10), ("reach", 1000, 1, False, 500, 10)])
+    assert baselines.reproduces(tmp_path / "a", tmp_path / "c") == (False, "1 of 2 rollouts differ")
+    # a committed run's rollouts are gzip-compressed
+    (tmp_path / "d").mkdir()
+    with gzip.open(tmp_path / "d" / "eval_rollouts.csv.gz", "wb") as f:
+        f.write((tmp_path / "b" / "eval_rollouts.csv").read_bytes())
+    assert baselines.reproduces(tmp_path / "a", tmp_path / "d")[0]
+    missing = baselines.reproduces(tmp_path / "a", tmp_path / "missing")
+    assert missing == (False, "one of the two runs has no evaluation")
+
+
+def test_the_plan_is_every_baseline_at_r3s_settings(baselines, capsys):
+    assert baselines.WEIGHTINGS == ("tilted", "truncate", "keyframe", "focal", "dro_time")
+    assert baselines.main(["run", "--dry-run", "--data-root", "datasets", "--seeds", "0,1"]) == 0
+    plan = capsys.readouterr().out
+    assert "11 runs" in plan  # uniform's seed 0 again, then 5 baselines x 2 seeds (8 by default)
+    lines = [line for line in plan.splitlines() if "to run:" in line]
+    assert "objective=uniform" in lines[0] and "seed=0" in lines[0]
+    assert all("data.tasks=[mt50]" in line and "eval.seed=1000" in line for line in lines)
+    assert [line.split("objective=")[1] for line in lines[1:6]] == list(baselines.WEIGHTINGS)
+    with pytest.raises(SystemExit):
+        baselines.main(["run", "--dry-run", "--weightings", "tilted,tar"])
+
+
+@pytest.mark.slow
+def test_the_commands_at_the_ci_scale(baselines, tmp_path, data_root):
+    regimes = _load("regimes")
+    study = tmp_path / "regimes"
+    r3 = ["r3", "--scale", "ci", "--out", str(study), "--data-root", str(data_root), "--seeds", "0"]
+    assert regimes.main(r3) == 0
+    out = tmp_path / "baselines"
+    common = ["--scale", "ci", "--out", str(out), "--regimes", str(study), "--data-root", str(data_root)]
+    common += ["--seeds", "0", "--weightings", "tilted,dro_time"]
+    with pytest.raises(SystemExit, match="no finished baseline run"):
+        baselines.main(["table", *common])
+    assert baselines.main(["run", *common]) == 0
+    assert baselines.main(["table", *common]) == 0
+    md = (out / "table.md").read_text()
+    assert "R3's committed runs (uniform's seed 0 trained again at the baselines' commit: 0 of" in md
+    paired = pd.read_csv(out / "paired.csv")
+    overall = paired[(paired.metric == "success") & (paired.level == "overall")].set_index("objective")
+    assert set(overall.index) == {"tar", "tilted", "dro_time"}
+    assert overall.loc["tar", "holm_p"] != overall.loc["tar", "holm_p"]  # NaN: Holm runs over the baselines only
+    # a uniform run that does not reproduce: the baselines pair with the uniform runs trained beside them (here
+    # every seed has one), and TAR's committed row is left out; without those runs the table is refused
+    committed = next((study / "runs").glob("uniform-*"))
+    rollouts = committed / "eval_rollouts.csv"
+    df = pd.read_csv(rollouts)
+    df.loc[df.index[-1], "steps"] += 1
+    df.to_csv(rollouts, index=False)
+    assert baselines.main(["table", *common]) == 0
+    assert "uniform trained beside the baselines; TAR's row left out" in (out / "table.md").read_text()
+    assert "tar" not in set(pd.read_csv(out / "paired.csv").objective)
+    shutil.rmtree(next((out / "runs").glob("uniform-*")))
+    with pytest.raises(SystemExit, match=r"does not reproduce R3's committed run .*run --uniform"):
+        baselines.main(["table", *common])
