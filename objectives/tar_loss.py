@@ -350,6 +350,25 @@ class TARLoss(LossModule):
         out = self.inner(tensordict)
         return self._step_losses(out, self._loss_entry(out), tensordict)
 
+    def step_and_dim_losses(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor | None]:
+        """The per-step losses of :meth:`step_losses` and, from the same pass of the inner loss, each
+        action dim's share of them.
+
+        Returns:
+            ``(steps, dims)``: ``steps`` as :meth:`step_losses` (``[B, L]``, the batch shape); ``dims``
+            ``[B, L, A]`` (the batch shape, then the loss's last axis, the action dims): each action
+            dim's loss per step, the mean over the other event dims (e.g. a chunk's horizon) over the
+            valid entries only (``event_valid``; 0 where a step has none). ``dims`` is ``None`` when
+            the inner loss has no event dims (one loss per step, nothing per action dim).
+
+        When every action dim has the same valid entries (always without ``event_valid``; a chunk's
+        mask covers whole actions), a step's loss is the mean of its ``A`` dim losses. For inspection,
+        like :meth:`step_losses`: it neither weights the steps nor advances the schedule.
+        """
+        out = self.inner(tensordict)
+        key = self._loss_entry(out)
+        return self._step_losses(out, key, tensordict), self._dim_losses(out, key, tensordict)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Weighted segment loss of Eq. 2 on a ``[B, L]`` TensorDict; does not modify it."""
         if tensordict.batch_dims < 2:
@@ -524,6 +543,20 @@ class TARLoss(LossModule):
         if self.tensor_keys.event_valid is None:
             return loss.mean(tuple(range(tensordict.batch_dims, loss.ndim)))
         return element_mean(loss, self._event_valid(loss, tensordict), tensordict.batch_dims)
+
+    def _dim_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> Tensor | None:
+        """The inner loss at ``key`` per step and action dim ``[*batch, A]`` (see :meth:`step_and_dim_losses`)."""
+        loss = self._checked_loss(out, key, tensordict)
+        if loss.ndim == tensordict.batch_dims:
+            return None
+        axes = tuple(range(tensordict.batch_dims, loss.ndim - 1))  # the event dims but the action dims
+        if self.tensor_keys.event_valid is None:
+            return loss.mean(axes) if axes else loss
+        valid = self._event_valid(loss, tensordict)
+        kept = torch.where(valid, loss, torch.zeros((), dtype=loss.dtype, device=loss.device))  # padding may be NaN
+        if not axes:
+            return kept
+        return kept.sum(axes) / valid.sum(axes).clamp_min(1).to(loss.dtype)
 
     def _element_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
         """The inner per-element loss ``[B, L, *event, A]`` and its event mask (all ``True`` if no ``event_valid``)."""

@@ -236,7 +236,9 @@ class LoggingConfig:
         checkpoint_every: write ``checkpoint.pt`` every this many steps (and at the end).
         record_weights_at: training steps at which TAR weights and per-step losses are recorded
             along whole demonstrations into ``weights.csv`` (the paper's Fig. 5); -1 means the
-            last step.
+            last step. Columns (``tar_rl.runs.weights_columns``): step, task, episode, t, loss,
+            weight, gripper, then ``loss_dim0`` .. ``loss_dim{A-1}`` (each action dim's loss at the
+            step) for a head whose loss has event dims.
         record_episodes: demonstrations recorded per task at each of those steps.
     """
 

@@ -16,6 +16,7 @@ from tar_rl import diagnostics
 from tar_rl.collectors.suites import SUITES, Suite
 from tar_rl.data import DemoDataset
 from tar_rl.objectives import TARLoss
+from tar_rl.runs import WEIGHTS_COLUMNS
 
 from .config import TrainConfig
 
@@ -63,7 +64,7 @@ def heldout_dataset(cfg: TrainConfig, tasks: Sequence[str], progress: bool) -> D
 
 def step_table(rows: list[tuple], value: str) -> pd.DataFrame:
     """:data:`tar_rl.diagnostics.STEP_COLUMNS` from ``record_weights`` rows (``value``: ``loss`` or ``weight``)."""
-    df = pd.DataFrame(rows, columns=["step", "task", "episode", "t", "loss", "weight", "gripper"])
+    df = pd.DataFrame([row[: len(WEIGHTS_COLUMNS)] for row in rows], columns=list(WEIGHTS_COLUMNS))
     df["episode"] = df["task"].astype(str) + "/" + df["episode"].astype(str)
     df["length"] = df.groupby("episode")["t"].transform("max") + 1
     return df.assign(value=df[value])[list(diagnostics.STEP_COLUMNS)]

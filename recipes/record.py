@@ -19,9 +19,13 @@ def record_weights(
 ) -> list[tuple]:
     """Per-step loss and TAR weight along whole demonstrations (rows of ``weights.csv``, the paper's Fig. 5).
 
-    The loss is the head's per-step loss at the current weights; the weight is
-    :func:`tar_rl.objectives.window_weights` of those losses with the objective's gamma, w_max,
-    eps and cap at full strength, whatever the run's own weighting and schedule.
+    A row is ``(step, task, episode, t, loss, weight, gripper, loss_dim0, ..., loss_dim{A-1})``
+    (:func:`tar_rl.runs.weights_columns`). The loss is the head's per-step loss at the current
+    weights; the weight is :func:`tar_rl.objectives.window_weights` of those losses with the
+    objective's gamma, w_max, eps and cap at full strength, whatever the run's own weighting and
+    schedule; the gripper is the last action dim of the demonstration's action; ``loss_dim<i>`` is
+    action dim ``i``'s loss at that step (:meth:`tar_rl.TARLoss.step_and_dim_losses`, from the same
+    pass of the head), absent for a head with one loss per step.
     """
     rows = []
     was_training = objective.training
@@ -30,11 +34,13 @@ def record_weights(
     try:
         with torch.no_grad():
             for task, episode, td in episodes:
-                losses = objective.step_losses(td.unsqueeze(0)).squeeze(0).float().cpu()
+                losses, dims = objective.step_and_dim_losses(td.unsqueeze(0))
+                losses = losses.squeeze(0).float().cpu()
                 weight = window_weights(losses, slice_len, gamma=p.gamma, w_max=p.w_max, eps=p.eps, cap=p.cap)
                 gripper = td["action"][..., -1].float().cpu()
+                per_dim = [()] * losses.shape[0] if dims is None else dims.squeeze(0).float().cpu().tolist()
                 rows += [
-                    (step, task, episode, t, float(losses[t]), float(weight[t]), float(gripper[t]))
+                    (step, task, episode, t, float(losses[t]), float(weight[t]), float(gripper[t]), *per_dim[t])
                     for t in range(losses.shape[0])
                 ]
     finally:

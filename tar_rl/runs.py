@@ -38,6 +38,7 @@ __all__ = [
     "ROLLOUTS_FILE",
     "SUMMARY_FILE",
     "WEIGHTS_COLUMNS",
+    "WEIGHTS_DIM_COLUMN",
     "WEIGHTS_FILE",
     "RunLogs",
     "config_differences",
@@ -52,6 +53,7 @@ __all__ = [
     "run_name",
     "save_checkpoint",
     "summary_rows",
+    "weights_columns",
 ]
 
 # -- The run directory's files and their columns (written by the recipe, read by the report) ----------
@@ -67,9 +69,14 @@ METRICS_COLUMNS: tuple[str, ...] = ("step", "phase", "name", "value")
 ROLLOUTS_FILE = "eval_rollouts.csv"
 #: The columns every :data:`ROLLOUTS_FILE` has (the ones the metrics read, and ``step``); evaluators add others.
 ROLLOUTS_COLUMNS: tuple[str, ...] = (*REQUIRED_COLUMNS, "step")
-#: Per-step loss and weight along recorded demonstrations, columns :data:`WEIGHTS_COLUMNS`.
+#: Per-step loss and weight along recorded demonstrations, columns :func:`weights_columns`.
 WEIGHTS_FILE = "weights.csv"
+#: The columns every :data:`WEIGHTS_FILE` has: the training step of the recording, the task, the demonstration
+#: (episode id) and its time step ``t``, the per-step loss, TAR's weight and the gripper (last) action dim.
+#: A head whose loss has event dims adds ``loss_dim0`` .. ``loss_dim{A-1}``, each action dim's loss at the step.
 WEIGHTS_COLUMNS: tuple[str, ...] = ("step", "task", "episode", "t", "loss", "weight", "gripper")
+#: The name of action dim ``i``'s loss column in :data:`WEIGHTS_FILE`.
+WEIGHTS_DIM_COLUMN = "loss_dim{}"
 #: The final evaluation, timings and provenance, written last (``"finished": true``).
 SUMMARY_FILE = "summary.json"
 
@@ -150,6 +157,15 @@ def config_differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     return [] if old == new else [f"{prefix[:-1]}: {old!r} -> {new!r}"]
 
 
+def weights_columns(width: int) -> list[str]:
+    """The :data:`WEIGHTS_FILE` columns of rows of ``width`` values: :data:`WEIGHTS_COLUMNS`, then one
+    :data:`WEIGHTS_DIM_COLUMN` per further value (``loss_dim0``, ``loss_dim1``, ...)."""
+    extra = width - len(WEIGHTS_COLUMNS)
+    if extra < 0:
+        raise ValueError(f"a weights row has at least {len(WEIGHTS_COLUMNS)} values ({WEIGHTS_COLUMNS}), got {width}")
+    return [*WEIGHTS_COLUMNS, *(WEIGHTS_DIM_COLUMN.format(i) for i in range(extra))]
+
+
 def summary_rows(step: int, table: pd.DataFrame) -> list[tuple]:
     """``metrics.csv`` rows (step, "eval", "<metric>/<group>", value) of a ``summarize`` table's groups and overall."""
     rows = []
@@ -179,7 +195,9 @@ class RunLogs:
     """Everything a run logs, kept in memory (and in the checkpoint) and written out atomically.
 
     Files (in ``run_dir``): :data:`METRICS_FILE` (:data:`METRICS_COLUMNS`), :data:`ROLLOUTS_FILE` (the
-    evaluator's columns and step), :data:`WEIGHTS_FILE` (:data:`WEIGHTS_COLUMNS`).
+    evaluator's columns and step), :data:`WEIGHTS_FILE` (:func:`weights_columns` of its longest row: the
+    per-dim losses when the head has them; a shorter row, e.g. one recorded before a resume by a version
+    that recorded no per-dim losses, has them empty).
     """
 
     def __init__(self, run_dir: Path, metrics=None, rollouts=None, weights=None):
@@ -196,7 +214,9 @@ class RunLogs:
         if self.rollouts:
             write_csv_atomic(pd.DataFrame(self.rollouts), self.run_dir / ROLLOUTS_FILE)
         if self.weights:
-            write_csv_atomic(pd.DataFrame(self.weights, columns=list(WEIGHTS_COLUMNS)), self.run_dir / WEIGHTS_FILE)
+            width = max(len(row) for row in self.weights)
+            rows = [(*row, *[math.nan] * (width - len(row))) for row in self.weights]
+            write_csv_atomic(pd.DataFrame(rows, columns=weights_columns(width)), self.run_dir / WEIGHTS_FILE)
 
 
 def rollout_records(step: int, df: pd.DataFrame) -> list[dict]:

@@ -141,6 +141,95 @@ def test_the_command_on_hand_made_runs(tmp_path):
         assert (tmp_path / "out" / name).read_text() == text, name
 
 
+def _hand_dims(root) -> pd.DataFrame:
+    """Each action dim's loss for the hand-made runs at the last step: 0.1 on every dim, the gripper dim 0.3 at
+    reach's switch steps (t 4, 7): xyz share 0.3 / 0.4 = 0.75, and 0.3 / 0.6 = 0.5 at the switch steps."""
+    parts = []
+    for path in sorted(root.iterdir()):
+        objective, _, seed, _ = path.name.split("-")
+        w = _weights(list(GRIPPER), objective == "tar" and seed == "s0")
+        w = w[w["step"] == 3743]
+        switch = (w["task"] == "reach") & w["t"].isin([4, 7])
+        dims = {c: 0.1 for c in diag.XYZ_COLUMNS} | {"loss_dim3": np.where(switch, 0.3, 0.1)}
+        parts.append(w.assign(run=path.name, objective=objective, seed=int(seed[1:]), **dims))
+    return pd.concat(parts, ignore_index=True)[list(diag.DIMS_COLUMNS)]
+
+
+def test_xyz_share_by_hand():
+    frame = pd.DataFrame({"loss_dim0": [1.0, 3.0, 0.0], "loss_dim1": [1.0, 0.0, 0.0], "loss_dim2": [2.0, 0.0, 0.0]})
+    frame["loss_dim3"] = [4.0, 1.0, 2.0]
+    # (1 + 1 + 2) / 8, 3 / 4, 0 / 2
+    assert diag.xyz_share(frame).tolist() == pytest.approx([0.5, 0.75, 0.0])
+    row = diag._dims_row(frame.assign(weight=1.0, loss=0.0, xyz_share=diag.xyz_share(frame)))
+    assert row["xyz_share"] == pytest.approx(1.25 / 3)  # the mean of the steps' shares
+    assert row["xyz_mass"] == pytest.approx(7 / 14)  # the arm's share of the summed loss: (4 + 3 + 0) / (8 + 4 + 2)
+    assert math.isnan(diag.xyz_share(frame.assign(loss_dim3=0.0)).iloc[2])  # no loss at all: no share
+
+
+def test_high_weight_steps_and_deciles_by_hand():
+    # one run of 20 steps (reach's gripper twice), weights 0.1 .. 2.0 in a shuffled order; x carries the loss
+    # below weight 1.85 and the gripper dim above it
+    weights = np.array([7, 19, 2, 11, 0, 15, 5, 18, 9, 13, 1, 16, 3, 10, 6, 17, 12, 4, 14, 8], dtype=float) / 10 + 0.1
+    high = weights > 1.85
+    frame = pd.DataFrame(
+        {
+            "run": "r",
+            "objective": "tar",
+            "seed": 0,
+            "step": 3743,
+            "task": "reach",
+            "episode": np.repeat([0, 1], 10),
+            "t": np.tile(np.arange(10), 2),
+            "loss": 0.25,
+            "weight": weights,
+            "gripper": GRIPPER["reach"] * 2,
+            "loss_dim0": np.where(high, 0.0, 1.0),
+            "loss_dim1": 0.0,
+            "loss_dim2": 0.0,
+            "loss_dim3": np.where(high, 1.0, 0.0),
+        }
+    )
+    labelled = diag.label_dims(frame)
+    # the 90th percentile of 0.1 .. 2.0 (linear): 0.1 + 0.9 * 19 * 0.1 = 1.81, so the weights 1.9 and 2.0 are high
+    assert sorted(labelled.loc[labelled["high"], "weight"]) == pytest.approx([1.9, 2.0])
+    by_decile = labelled.groupby("decile")["weight"].agg(["min", "max"]).to_numpy()
+    assert by_decile == pytest.approx(np.array([[0.1 + 0.2 * k, 0.2 + 0.2 * k] for k in range(10)]))
+    groups = diag.dims_group_table(labelled).set_index(["split", "group"])
+    assert groups.loc[("weight", "high"), "xyz_share"] == 0.0 and groups.loc[("weight", "rest"), "xyz_share"] == 1.0
+    assert groups.loc[("all", "all"), "xyz_share"] == pytest.approx(18 / 20)
+    # switch steps of reach: t 4 and 7 in both episodes; their weights 0.1, 1.9 (episode 0) and 0.7, 0.5 (episode 1)
+    assert groups.loc[("switch", "switch"), "steps"] == 4
+    assert groups.loc[("switch", "switch"), "mean_weight"] == pytest.approx((0.1 + 1.9 + 0.7 + 0.5) / 4)
+    assert groups.loc[("switch", "switch"), "xyz_share"] == pytest.approx(3 / 4)
+    deciles = diag.dims_decile_table(labelled).set_index("decile")
+    assert deciles["xyz_share"].tolist() == [1.0] * 9 + [0.0]
+
+
+def test_the_command_with_a_per_dimension_recording(tmp_path):
+    _write_r3(tmp_path / "runs")
+    diag.write_dims(_hand_dims(tmp_path / "runs"), tmp_path / "dims.csv.gz")
+    args = ["--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--dims", str(tmp_path / "dims.csv.gz")]
+    assert diag.main(args) == 0
+    groups = pd.read_csv(tmp_path / "out" / "dims_groups.csv").set_index(["objective", "seed", "split", "group"])
+    for objective in ("tar", "uniform"):
+        for seed in (0, 1):
+            one = groups.loc[(objective, seed)]
+            assert one.loc[("switch", "switch"), ["steps", "xyz_share"]].tolist() == pytest.approx([2, 0.5])
+            assert one.loc[("switch", "other"), ["steps", "xyz_share"]].tolist() == pytest.approx([28, 0.75])
+            assert one.loc[("all", "all"), "xyz_share"] == pytest.approx((2 * 0.5 + 28 * 0.75) / 30)
+            assert one.loc[("all", "all"), "xyz_mass"] == pytest.approx(30 * 0.3 / (28 * 0.4 + 2 * 0.6))
+            # ties at the 90th percentile count as high: with 28 weights of 1, every step is high
+            assert one.loc[("weight", "high"), "steps"] == 30
+    md = (tmp_path / "out" / "diagnosis.md").read_text()
+    assert "## Per action dimension" in md and "Not analysed" not in md
+    assert (tmp_path / "out" / "dims_time.png").is_file()
+    assert "## Per action dimension" not in diag.diagnose(tmp_path / "runs").markdown  # without the recording
+    other = _hand_dims(tmp_path / "runs").replace({"run": {"tar-mlp-s1-deadbeef": "tar-mlp-s1-cafecafe"}})
+    diag.write_dims(other, tmp_path / "other.csv.gz")
+    with pytest.raises(SystemExit, match=r"other runs than R3's pairs \(lacking \['tar-mlp-s1-deadbeef'\]"):
+        diag.diagnose(tmp_path / "runs", tmp_path / "other.csv.gz")
+
+
 def test_refusals_name_what_is_missing(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit, match=r"no R3 runs in .*data.tasks \[.mt50.\], data.n_demos 50"):
@@ -156,9 +245,34 @@ def test_refusals_name_what_is_missing(tmp_path):
         diag.diagnose(tmp_path / "short")
 
 
-def test_committed_diagnosis_equals_what_the_command_computes():
-    """benchmarks/results/regimes/diagnosis is recomputed from the committed runs."""
-    result = diag.diagnose(diag.DEFAULT_RUNS)
+@pytest.fixture(scope="module")
+def committed():
+    """The diagnosis of the committed runs and per-dimension recording."""
+    return diag.diagnose(diag.DEFAULT_RUNS, diag.DEFAULT_DIMS)
+
+
+def test_committed_diagnosis_equals_what_the_command_computes(committed):
+    """benchmarks/results/regimes/diagnosis is recomputed from the committed runs and per-dimension recording."""
+    result = committed
     assert (COMMITTED / "diagnosis.md").read_text() == result.markdown
+    assert {"dims_groups.csv", "dims_deciles.csv"} <= set(result.csv_texts())
     for name, text in result.csv_texts().items():
         assert (COMMITTED / name).read_text() == text, name
+
+
+def test_committed_per_dimension_recording_agrees_with_the_committed_runs(committed):
+    """dims.csv.gz holds each R3 run's last recording (the committed weights.csv, to its 6 significant digits)
+    with four dim losses whose mean is the step loss (the MLP head's loss is the mean over the action dims)."""
+    assert diag.DEFAULT_DIMS.stat().st_size < 8e6
+    dims = committed.dims
+    keys = ["run", "task", "episode", "t"]
+    own = pd.concat(
+        [run.weights.assign(run=run.name) for slot in committed.pairs.runs.values() for run in slot.values()]
+    )
+    own = own[own["step"] == 3743]
+    both = own.merge(dims, on=keys, suffixes=("", "_dims"), validate="one_to_one")
+    assert len(both) == len(own) == len(dims) == 16 * 11203
+    for column in ("loss", "weight", "gripper"):
+        np.testing.assert_allclose(both[f"{column}_dims"], both[column], rtol=1e-5, atol=1e-9, err_msg=column)
+    mean = dims[list(diag.DIM_COLUMNS)].mean(axis=1)
+    np.testing.assert_allclose(mean, dims["loss"], rtol=2e-5, atol=1e-9)

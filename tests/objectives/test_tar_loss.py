@@ -248,6 +248,33 @@ class TestChunksAndExtras:
         plain = TARLoss(ChunkLoss(), "uniform")(td)["loss_tar"]
         assert plain.item() == pytest.approx(err.mean().item(), rel=1e-6)
 
+    def test_dim_losses_are_the_masked_mean_over_the_other_event_dims(self):
+        class Given(LossModule):
+            reduction = "none"
+
+            def forward(self, td):
+                return TensorDict({"loss_chunk": td["elements"]}, [])
+
+        # one segment of 2 steps, a horizon of 3, 2 action dims; NaN on a padded entry
+        elements = torch.tensor(
+            [[[[1.0, 10.0], [3.0, 20.0], [5.0, 60.0]], [[2.0, 4.0], [6.0, 8.0], [float("nan"), 1e6]]]]
+        )
+        valid = torch.tensor([[[True, True, True], [True, True, False]]])
+        td = TensorDict({"elements": elements, "chunk_valid": valid}, [1, 2])
+        loss = TARLoss(Given(), "uniform")
+        loss.set_keys(event_valid="chunk_valid")
+        steps, dims = loss.step_and_dim_losses(td)
+        # step 0: dim 0 (1 + 3 + 5) / 3 = 3, dim 1 (10 + 20 + 60) / 3 = 30; step 1: (2 + 6) / 2 = 4, (4 + 8) / 2 = 6
+        torch.testing.assert_close(dims, torch.tensor([[[3.0, 30.0], [4.0, 6.0]]]))
+        torch.testing.assert_close(steps, torch.tensor([[16.5, 5.0]]))  # the mean over valid elements
+        torch.testing.assert_close(steps, loss.step_losses(td))
+        plain = TARLoss(Given(), "uniform")  # no event mask: plain means
+        _, dims = plain.step_and_dim_losses(td[:, :1])
+        torch.testing.assert_close(dims, torch.tensor([[[3.0, 30.0]]]))
+        per_step = TensorDict({"elements": elements[..., 0, 0]}, [1, 2])  # one loss per step: no dims
+        steps, dims = plain.step_and_dim_losses(per_step)
+        assert dims is None and steps.tolist() == [[1.0, 2.0]]
+
     def test_extra_scalar_losses_are_added_unweighted(self, segments):
         class WithKL(LossModule):
             reduction = "none"

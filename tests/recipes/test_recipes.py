@@ -43,7 +43,7 @@ from tar_rl.recipes import (
     validate,
 )
 from tar_rl.recipes.config import PRESETS, register_configs, typed_config
-from tar_rl.runs import CHECKPOINT, load_checkpoint
+from tar_rl.runs import CHECKPOINT, WEIGHTS_COLUMNS, RunLogs, load_checkpoint, weights_columns
 
 # -- Config -------------------------------------------------------------------------------------
 
@@ -79,6 +79,10 @@ def test_every_registered_objective_and_policy_builds_from_defaults(objective, p
     )
     out = loss(batch)
     assert out["loss_tar"].shape == () and torch.isfinite(out["loss_tar"])
+    with torch.no_grad():
+        steps, dims = loss.step_and_dim_losses(batch)  # every head: a loss per action dim (weights.csv's loss_dim*)
+    assert dims.shape == (3, 5, 4)
+    torch.testing.assert_close(dims.mean(-1), steps)  # from the same pass: a step's loss is its dims' mean
     out["loss_tar"].backward()
     assert all(p.grad is not None for p in built.actor.parameters())
     inference = batch[:, 0].select("observation", "task_id").set("is_init", torch.ones(3, 1, dtype=torch.bool))
@@ -291,6 +295,50 @@ def test_record_weights_matches_the_reference_averaged_over_windows():
     assert [r[4] for r in rows] == pytest.approx(losses, rel=1e-6)
     assert [r[5] for r in rows] == pytest.approx(expected, rel=1e-5)
     assert [r[6] for r in rows] == pytest.approx(a.tolist())  # the last action dim
+    # one action dim: its loss column is the step loss
+    assert {len(r) for r in rows} == {8} and [r[7] for r in rows] == pytest.approx(losses, rel=1e-6)
+
+
+def test_record_weights_gives_a_chunked_heads_per_dim_losses_over_its_valid_entries():
+    cfg = typed_config(compose_config("policy=octo_linear", "objective=uniform"))
+    torch.manual_seed(0)
+    policy = make_policy(cfg.policy, DataInfo(chunk_horizon=3, history=1))
+    objective = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
+    valid = torch.tensor([[True] * 3, [True] * 3, [True, True, False], [True, False, False]])  # the episode's end
+    chunk = torch.rand(4, 3, 4) * 2 - 1
+    chunk[~valid] = 100.0  # padding: a mean that took it in would be far off
+    episode = TensorDict(
+        {
+            "observation_history": torch.randn(4, 1, 39),
+            "observation_history_valid": torch.ones(4, 1, dtype=torch.bool),
+            "task_id": torch.zeros(4, dtype=torch.long),
+            "action_chunk": chunk,
+            "action_chunk_valid": valid,
+            "action": chunk[:, 0],
+        },
+        [4],
+    )
+    rows = record_weights(objective, [("reach", 0, episode)], slice_len=2, step=5)
+    with torch.no_grad():
+        out = policy.loss(episode.unsqueeze(0))
+    (key,) = [k for k in out.keys() if k.startswith("loss")]
+    elements = out[key][0]  # [T, H, A], padding included
+    assert elements.shape == (4, 3, 4)
+    for t, row in enumerate(rows):
+        kept = [h for h in range(3) if valid[t, h]]
+        by_hand = [sum(float(elements[t, h, a]) for h in kept) / len(kept) for a in range(4)]
+        assert len(row) == 11 and list(row[7:]) == pytest.approx(by_hand, rel=1e-5)
+        assert row[4] == pytest.approx(sum(by_hand) / 4, rel=1e-5)  # the step loss: the mean of its dims'
+
+
+def test_weights_file_has_the_per_dim_columns_and_leaves_them_empty_on_shorter_rows(tmp_path):
+    rows = [(3, "reach", 0, 0, 0.5, 1.0, -1.0), (5, "reach", 0, 0, 0.25, 1.5, -1.0, 0.2, 0.3)]
+    logs = RunLogs(tmp_path, weights=rows)
+    logs.write()
+    table = pd.read_csv(tmp_path / "weights.csv")
+    assert list(table.columns) == [*WEIGHTS_COLUMNS, "loss_dim0", "loss_dim1"]
+    assert table["loss_dim0"].isna().tolist() == [True, False] and table["loss_dim1"].iloc[1] == 0.3
+    assert weights_columns(7) == list(WEIGHTS_COLUMNS)
 
 
 # -- The job ------------------------------------------------------------------------------------
@@ -392,6 +440,11 @@ def test_smoke_run_writes_every_output(smoke_run):
     # one demonstration of the task at each recorded step, every step of it
     assert weights.groupby("step").size().nunique() == 1 and len(weights) % 2 == 0
     assert (weights.groupby("step").t.max() + 1 == len(weights) // 2).all()
+    # the MLP head's step loss is the plain mean of its 4 action dims' losses
+    dims = [f"loss_dim{i}" for i in range(4)]
+    assert list(weights.columns) == [*WEIGHTS_COLUMNS, *dims]
+    assert weights[dims].mean(axis=1).to_numpy() == pytest.approx(weights["loss"].to_numpy(), rel=1e-6, abs=1e-9)
+    assert (weights[dims].std(axis=1) > 0).any()  # the dims differ: the identity is not trivial
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["finished"] and summary["steps"] == 30 and summary["objective"] == "tar"
     overall = next(r for r in summary["final"] if r["level"] == "overall")
