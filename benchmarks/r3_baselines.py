@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the other benchmark 
 from paper_analysis import controls_markdown, fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
 from r3_tuning import seed_major
-from regimes import STUDIES, _ints, check_pairs, collect, r3_specs
+from regimes import STUDIES, _ints, check_pairs, collect, exit_code, jobs_and_out, r3_specs, study_parser
 
 COMMANDS = ("run", "table", "collect")
 BASELINE, TREATMENT = "uniform", "tar"
@@ -132,20 +132,15 @@ def _names(text: str) -> tuple[str, ...]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="r3_baselines.py", description="The baselines from the literature in R3.")
-    p.add_argument("command", choices=COMMANDS)
-    p.add_argument("--scale", default="cpu", choices=sorted(STUDIES))
-    p.add_argument("--out", default=None, help="results folder (default: benchmarks/results/regimes/baselines)")
+    p = study_parser(
+        "r3_baselines.py", "The baselines from the literature in R3.", COMMANDS, "benchmarks/results/regimes/baselines"
+    )
     p.add_argument("--regimes", default=None, help="the regime study's folder (default: benchmarks/results/regimes)")
-    p.add_argument("--data-root", default="datasets", help="dataset cache folder (default: ./datasets)")
-    p.add_argument("--jobs", type=int, default=None, help="runs trained at once (default: the scale's)")
     p.add_argument("--uniform", action="store_true", help="run: also train every uniform seed beside the baselines")
     p.add_argument("--seeds", type=_ints, default=None, help="override the seeds (default: the scale's)")
     p.add_argument(
         "--weightings", type=_names, default=WEIGHTINGS, help=f"only these baselines (default: {','.join(WEIGHTINGS)})"
     )
-    p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
-    p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
     return p
 
 
@@ -159,13 +154,10 @@ def main(argv: list[str] | None = None) -> int:
     study = STUDIES[args.scale]
     if args.seeds is not None:
         study = replace(study, scale=replace(study.scale, seeds=args.seeds))
-    jobs = study.scale.jobs if args.jobs is None else args.jobs
-    if jobs < 1:
-        raise SystemExit(f"r3_baselines: --jobs must be >= 1, got {jobs}")
-    if (args.out is None or args.regimes is None) and args.scale != "cpu":
-        raise SystemExit("r3_baselines: --out and --regimes are required with --scale ci")
     here = Path(__file__).resolve().parent / "results" / "regimes"
-    out = Path(args.out) if args.out else here / "baselines"
+    jobs, out = jobs_and_out(args, study.scale, "r3_baselines", here / "baselines")
+    if args.regimes is None and args.scale != "cpu":
+        raise SystemExit(f"r3_baselines: --regimes is required with --scale {args.scale}")
     regimes_out = Path(args.regimes) if args.regimes else here
     planner = Planner(study.scale, out, args.data_root)
     uniform = uniform_specs(planner, study)
@@ -179,11 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         specs = [uniform[0], *seed_major(baseline_specs(planner, study, args.weightings))]
         if args.uniform:
             specs = [*uniform, *specs]
-        failed = execute(study.scale, specs, jobs, args.dry_run, out / "logs")
-        if failed:
-            print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
-            return 1
-        return 0
+        return exit_code(execute(study.scale, specs, jobs, args.dry_run, out / "logs"))
     # table
     committed = r3_runs(study, regimes_out)
     ok, why = reproduces(uniform[0].run_dir, committed[BASELINE][0].run_dir)

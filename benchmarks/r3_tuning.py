@@ -40,7 +40,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # regimes.py and paper_experiments.py beside this script
 from paper_analysis import fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
-from regimes import STUDIES, check_pairs, collect
+from regimes import STUDIES, check_pairs, collect, exit_code, jobs_and_out, study_parser
 
 COMMANDS = ("tune", "select", "final", "table", "collect")
 BASELINE = "uniform"
@@ -304,15 +304,12 @@ def _read_selected(out: Path) -> dict | None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="r3_tuning.py", description="TAR's pre-registered tuning in R3: runs and tables.")
-    p.add_argument("command", choices=COMMANDS)
-    p.add_argument("--scale", default="cpu", choices=sorted(TUNINGS))
-    p.add_argument("--out", default=None, help="results folder (default: benchmarks/results/regimes/tuning)")
-    p.add_argument("--data-root", default="datasets", help="dataset cache folder (default: ./datasets)")
-    p.add_argument("--jobs", type=int, default=None, help="runs trained at once (default: the scale's)")
-    p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
-    p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
-    return p
+    return study_parser(
+        "r3_tuning.py",
+        "TAR's pre-registered tuning in R3: runs and tables.",
+        COMMANDS,
+        "benchmarks/results/regimes/tuning",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -322,12 +319,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
     tuning, scale = TUNINGS[args.scale], STUDIES[args.scale].scale
-    jobs = scale.jobs if args.jobs is None else args.jobs
-    if jobs < 1:
-        raise SystemExit(f"r3_tuning: --jobs must be >= 1, got {jobs}")
-    if args.out is None and args.scale != "cpu":
-        raise SystemExit("r3_tuning: --out is required with --scale ci (the default folder holds the results)")
-    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "regimes" / "tuning"
+    jobs, out = jobs_and_out(
+        args, scale, "r3_tuning", Path(__file__).resolve().parent / "results" / "regimes" / "tuning"
+    )
     planner = Planner(scale, out, args.data_root)
     logs = out / "logs"
     failed: list[Spec] = []
@@ -376,10 +370,7 @@ def main(argv: list[str] | None = None) -> int:
                 write_csv_atomic(df.round(6), out / "final.csv")
                 print(md)
         write_json_atomic(provenance(scale, argv, "r3_tuning.py"), out / "provenance.json")
-    if failed:
-        print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
-        return 1
-    return 0
+    return exit_code(failed)
 
 
 if __name__ == "__main__":

@@ -514,18 +514,45 @@ def _ints(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="regimes.py", description="The pre-registered regime study: runs and tables.")
-    p.add_argument("command", choices=COMMANDS)
+def study_parser(prog: str, description: str, commands: Sequence[str], default_out: str) -> argparse.ArgumentParser:
+    """The command line the study's scripts share: COMMAND, ``--scale``, ``--out``, ``--data-root``, ``--jobs``,
+    ``--from`` (for ``collect``) and ``--dry-run``; a script adds its own options."""
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("command", choices=commands)
     p.add_argument("--scale", default="cpu", choices=sorted(STUDIES))
-    p.add_argument("--out", default=None, help="results folder (default: benchmarks/results/regimes, ci: required)")
+    p.add_argument("--out", default=None, help=f"results folder (default: {default_out}; with --scale ci: required)")
     p.add_argument("--data-root", default="datasets", help="dataset cache folder (default: ./datasets)")
     p.add_argument("--jobs", type=int, default=None, help="runs trained at once (default: the scale's)")
+    p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
+    p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
+    return p
+
+
+def jobs_and_out(args: argparse.Namespace, scale: Scale, prog: str, default_out: Path) -> tuple[int, Path]:
+    """The runs trained at once and the results folder of a :func:`study_parser` command line, checked."""
+    jobs = scale.jobs if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise SystemExit(f"{prog}: --jobs must be >= 1, got {jobs}")
+    if args.out is None and args.scale != "cpu":
+        raise SystemExit(f"{prog}: --out is required with --scale {args.scale} (the default folder holds the results)")
+    return jobs, Path(args.out) if args.out else default_out
+
+
+def exit_code(failed: Sequence[Spec]) -> int:
+    """0, or 1 after naming the runs that failed."""
+    if failed:
+        print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
+        return 1
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = study_parser(
+        "regimes.py", "The pre-registered regime study: runs and tables.", COMMANDS, "benchmarks/results/regimes"
+    )
     p.add_argument("--seeds", type=_ints, default=None, help="override the seeds of the pairs")
     p.add_argument("--budgets", type=_ints, default=None, help="r1: only these demonstration budgets")
-    p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
     p.add_argument("--tables", default=None, help="table: write the tables here instead of into --out")
-    p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
     return p
 
 
@@ -536,12 +563,7 @@ def main(argv: list[str] | None = None) -> int:
     study = STUDIES[args.scale]
     if args.seeds is not None:
         study = replace(study, scale=replace(study.scale, seeds=args.seeds))
-    jobs = study.scale.jobs if args.jobs is None else args.jobs
-    if jobs < 1:
-        raise SystemExit(f"regimes: --jobs must be >= 1, got {jobs}")
-    if args.out is None and args.scale != "cpu":
-        raise SystemExit("regimes: --out is required with --scale ci (the default folder holds the study's results)")
-    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "regimes"
+    jobs, out = jobs_and_out(args, study.scale, "regimes", Path(__file__).resolve().parent / "results" / "regimes")
     planner = Planner(study.scale, out, args.data_root)
     logs = out / "logs"
     failed: list[Spec] = []
@@ -577,10 +599,7 @@ def main(argv: list[str] | None = None) -> int:
         dest = Path(args.tables) if args.tables else out
         dest.mkdir(parents=True, exist_ok=True)
         print(write_tables(study, planner, out, provenance(study.scale, argv, "regimes.py"), dest))
-    if failed:
-        print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
-        return 1
-    return 0
+    return exit_code(failed)
 
 
 if __name__ == "__main__":

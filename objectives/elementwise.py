@@ -40,6 +40,7 @@ from .weighting import (
     CapMode,
     Weighting,
     WeightingParams,
+    check_finite,
     weights_from_scores,
 )
 
@@ -64,14 +65,7 @@ def check_element_losses(losses: Tensor, valid: Tensor) -> None:
         raise ValueError(
             f"losses and valid must have the same shape, got {tuple(losses.shape)} and {tuple(valid.shape)}."
         )
-    bad = valid & ~torch.isfinite(losses.detach())
-    message = "non-finite per-element loss at a valid element: the weights would be NaN."
-    if torch.compiler.is_compiling():
-        torch._assert_async(~bad.any(), message)
-        return
-    if bad.any():
-        first = tuple(int(i) for i in bad.nonzero()[0])
-        raise ValueError(f"{message} {int(bad.sum())} valid elements are NaN or inf (first at index {first}).")
+    check_finite(losses, valid, "element")
 
 
 def element_mean(x: Tensor, valid: Tensor, batch_dims: int = 2) -> Tensor:

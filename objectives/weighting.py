@@ -198,15 +198,22 @@ def check_step_losses(losses: Tensor, valid: Tensor) -> None:
         raise ValueError(
             f"losses and valid must have the same shape [..., L], got {tuple(losses.shape)} and {tuple(valid.shape)}."
         )
+    check_finite(losses, valid, "step")
+
+
+def check_finite(losses: Tensor, valid: Tensor, what: str) -> None:
+    """Raise a ``ValueError`` if a loss where ``valid`` is ``True`` is NaN or inf (``what``: ``step`` or
+    ``element``, for the message). Under ``torch.compile`` the check is an in-graph assertion with the same
+    message, so compiled code needs no graph break."""
     bad = valid & ~torch.isfinite(losses.detach())
-    message = "non-finite per-step loss at a valid step: the weights would be NaN."
+    message = f"non-finite per-{what} loss at a valid {what}: the weights would be NaN."
     if torch.compiler.is_compiling():
         torch._assert_async(~bad.any(), message)
         return
     if bad.any():
         first = tuple(int(i) for i in bad.nonzero()[0])
         raise ValueError(
-            f"{message} {int(bad.sum())} of {int(valid.sum())} valid steps are NaN or inf "
+            f"{message} {int(bad.sum())} of {int(valid.sum())} valid {what}s are NaN or inf "
             f"(first at index {first}, value {losses.detach()[first].item()})."
         )
 
