@@ -50,8 +50,8 @@ print(json.dumps({{"obs": obs.tolist(), "img": img.tolist()}}))
 
 @pytest.fixture(scope="module")
 def image_datasets(tmp_path_factory):
-    """A dataset folder shared by the recipe jobs (one rendered dataset, collected once)."""
-    return tmp_path_factory.mktemp("recipe-image-datasets")
+    """A dataset folder shared by the module (one rendered dataset, collected once: ``image_dataset``)."""
+    return tmp_path_factory.mktemp("image-datasets")
 
 
 class _KeptPool(RolloutPool):
@@ -70,9 +70,9 @@ def image_pool():
 
 
 @pytest.fixture(scope="module")
-def image_dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("image-datasets")
-    return build_dataset(root, ["reach"], 1, seed=0, image_size=S, workers=1, progress=False, verbose=False)
+def image_dataset(image_datasets):
+    """The rendered dataset of the recipe jobs (``tiny``'s: reach, 2 demonstrations, seed 0): they load it."""
+    return build_dataset(image_datasets, ["reach"], 2, seed=0, image_size=S, workers=1, progress=False, verbose=False)
 
 
 @pytest.mark.slow
@@ -227,7 +227,7 @@ def test_evaluation_gives_the_policy_the_image_of_each_slot(image_dataset, image
 @pytest.mark.slow
 @pytest.mark.parametrize("name", HEADS)
 def test_a_tiny_image_job_trains_and_evaluates_through_the_recipe(
-    name, tmp_path, image_datasets, image_pool, monkeypatch
+    name, tmp_path, image_datasets, image_dataset, image_pool, monkeypatch
 ):
     monkeypatch.setattr(offline_bc, "make_evaluation_pool", lambda suite: image_pool)  # the jobs share one worker
     config = tiny(
