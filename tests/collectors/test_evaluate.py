@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import signal
@@ -357,8 +358,10 @@ def test_bench_eval_interleaved_raw_side_runs_every_step(monkeypatch):
 
 
 @pytest.mark.slow
-def test_bench_eval_quick_writes_csv(tmp_path):
+def test_bench_eval_quick_writes_csv(tmp_path, monkeypatch, open_pool):
     bench = _bench_eval()
+    # The benchmark's evaluations run on the module's pool, which stays open: its workers serve the next tests.
+    monkeypatch.setattr(ev, "RolloutPool", lambda: contextlib.nullcontext(open_pool))
     out = tmp_path / "eval.csv"
     # Both sections: all_cores splits the rollouts over 2 workers, whose batches differ from one
     # process's (its rows may differ in the last bits of the returns, never in steps or success).
