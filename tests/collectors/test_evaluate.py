@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import signal
@@ -69,6 +70,32 @@ def plain_expert_rollout(task, seed, k, horizon):
 @pytest.fixture(scope="module")
 def expert_rows():
     return evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=1, progress=False)
+
+
+@pytest.fixture(scope="module")
+def rows_without_pool():
+    """The expert's rows from two workers of an evaluation given no pool, and the workers it left running."""
+    before = {p.pid for p in _evaluation_workers()}  # those of a pool another test keeps open
+    df = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
+    return df, [p for p in _evaluation_workers() if p.pid not in before]
+
+
+_SHARED: list[RolloutPool] = []
+
+
+@pytest.fixture
+def open_pool():
+    """The module's pool: its workers, once started, serve the next test that takes it; a test may close it."""
+    if not _SHARED or _SHARED[-1].closed:
+        _SHARED.append(RolloutPool())
+    return _SHARED[-1]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _close_the_shared_pool():
+    yield
+    for pool in _SHARED:
+        pool.close()
 
 
 def test_expert_succeeds_and_matches_a_plain_loop(expert_rows):
@@ -239,8 +266,8 @@ def test_slot_count_does_not_change_the_rows(expert_rows, envs_per_worker):
 
 
 @pytest.mark.slow
-def test_two_workers_give_the_same_rows(expert_rows):
-    df = evaluate(ExpertPolicy(), EASY, rollouts_per_task=2, seed=1000, horizon=200, workers=2, progress=False)
+def test_two_workers_give_the_same_rows(expert_rows, rows_without_pool):
+    df, _ = rows_without_pool
     pd.testing.assert_frame_equal(df, expert_rows)
 
 
@@ -331,8 +358,10 @@ def test_bench_eval_interleaved_raw_side_runs_every_step(monkeypatch):
 
 
 @pytest.mark.slow
-def test_bench_eval_quick_writes_csv(tmp_path):
+def test_bench_eval_quick_writes_csv(tmp_path, monkeypatch, open_pool):
     bench = _bench_eval()
+    # The benchmark's evaluations run on the module's pool, which stays open: its workers serve the next tests.
+    monkeypatch.setattr(ev, "RolloutPool", lambda: contextlib.nullcontext(open_pool))
     out = tmp_path / "eval.csv"
     # Both sections: all_cores splits the rollouts over 2 workers, whose batches differ from one
     # process's (its rows may differ in the last bits of the returns, never in steps or success).
@@ -365,9 +394,17 @@ def test_progress_bar_counts_rollouts(capsys):
 
 
 @pytest.mark.slow
-def test_a_worker_error_reaches_the_caller():
+def test_a_worker_error_reaches_the_caller(open_pool):
     with pytest.raises(ValueError, match=r"non-finite actions for drawer-close-v3 \(rollout 0\) at step 2"):
-        evaluate(ConstPolicy(0.0, nan_at_step=2), ["reach", "drawer-close"], 1, horizon=5, workers=2, progress=False)
+        evaluate(
+            ConstPolicy(0.0, nan_at_step=2),
+            ["reach", "drawer-close"],
+            1,
+            horizon=5,
+            workers=2,
+            progress=False,
+            pool=open_pool,
+        )
 
 
 def plain_const_rollout(task, k, value, horizon):
@@ -426,8 +463,8 @@ def test_the_module_keeps_no_state_and_a_closed_pool_is_refused():
 
 
 @pytest.mark.slow
-def test_a_pool_keeps_its_workers_between_evaluations_and_close_ends_them(expert_rows):
-    with RolloutPool() as pool:
+def test_a_pool_keeps_its_workers_between_evaluations_and_close_ends_them(expert_rows, rows_without_pool, open_pool):
+    with open_pool as pool:
         first = evaluate(ExpertPolicy(), EASY, 2, seed=1000, horizon=200, workers=2, progress=False, pool=pool)
         pids = pool.pids
         assert len(pids) == 2 and all(map(_alive, pids))
@@ -440,13 +477,12 @@ def test_a_pool_keeps_its_workers_between_evaluations_and_close_ends_them(expert
     assert pool.closed and pool.pids == ()
     assert not any(map(_alive, pids))
     # Without a pool, an evaluation's workers end before it returns.
-    evaluate(ConstPolicy(0.0), "reach", 2, horizon=3, workers=2, progress=False)
-    assert _evaluation_workers() == []
+    assert rows_without_pool[1] == []
 
 
 @pytest.mark.slow
-def test_an_exception_ends_the_workers_idle_or_running(monkeypatch):
-    with pytest.raises(RuntimeError, match="the job failed"), RolloutPool() as pool:
+def test_an_exception_ends_the_workers_idle_or_running(monkeypatch, open_pool):
+    with pytest.raises(RuntimeError, match="the job failed"), open_pool as pool:
         evaluate(ConstPolicy(0.0), "reach", 2, horizon=3, workers=2, progress=False, pool=pool)
         idle = pool.pids
         raise RuntimeError("the job failed")
@@ -483,8 +519,8 @@ class _DiesInWorkers(TensorDictModuleBase):
 
 
 @pytest.mark.slow
-def test_a_dead_worker_is_replaced(expert_rows):
-    with RolloutPool() as pool:
+def test_a_dead_worker_is_replaced(expert_rows, open_pool):
+    with open_pool as pool:
         with pytest.raises(BrokenProcessPool, match="exit code 3"):
             evaluate(_DiesInWorkers(), "reach", 2, horizon=3, workers=2, progress=False, pool=pool)
         assert pool.pids == ()  # the other worker was ended too

@@ -572,7 +572,7 @@ def test_bench_data_quick_writes_csv(tmp_path, monkeypatch):
     assert not list(tmp_path.glob(".*")), "no temporary file left beside the CSV"
 
 
-@pytest.mark.slow  # collects a tiny dataset and starts two `tar-rl train` processes: ~20 s
+@pytest.mark.slow  # collects a tiny dataset in this process and starts a `tar-rl train` process: ~5 s
 def test_bench_data_startup_quick_writes_csv(tmp_path, monkeypatch):
     import importlib
 
@@ -581,7 +581,8 @@ def test_bench_data_startup_quick_writes_csv(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
     bench = importlib.import_module("bench_data")
     out = tmp_path / "startup.csv"
-    bench.main(["--quick", "--sections", "startup", "--root", str(tmp_path / "data"), "--out", str(out)])
+    root = str(tmp_path / "data")
+    bench.main(["--quick", "--sections", "startup", "--workers", "1", "--root", root, "--out", str(out)])
     df = pd.read_csv(out)
     assert list(df.columns) == bench.COLUMNS
     assert list(df.variant) == ["job_startup", "load_dataset", "check_content"]

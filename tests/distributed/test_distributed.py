@@ -22,6 +22,7 @@ import torch
 import torch.distributed as torch_dist
 import torch.multiprocessing as mp
 from paths import REPO
+from recipe_helpers import compose_config
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
@@ -29,6 +30,7 @@ from torchrl.objectives import BCLoss
 from tar_rl import TARLoss
 from tar_rl.collectors.metaworld.dataset import build_dataset
 from tar_rl.collectors.metaworld.evaluate import ExpertPolicy, evaluate
+from tar_rl.recipes import train
 from tar_rl.runs import load_checkpoint
 
 B, L = 8, 6
@@ -242,8 +244,9 @@ def test_a_two_rank_job_follows_the_single_process_run(job, two_ranks):
     root, overrides = job
     run_dir, done = two_ranks
     assert done.stdout.count("final evaluation") == 1  # rank 0 alone prints and writes
-    one = _launch(root, overrides, "one", 1)
-    assert one.returncode == 0, one.stderr[-3000:]
+    # The single-process run in this process: without WORLD_SIZE (or with WORLD_SIZE=1, as under
+    # `torchrun --nproc_per_node=1`) a job is one process, with the same settings.
+    train(compose_config(*overrides, f"runs_root={root / 'one'}"))
     single = load_checkpoint(_only_run(root / "one"))
     double = load_checkpoint(run_dir)
     assert double["world_size"] == 2 and single["world_size"] == 1
@@ -264,11 +267,17 @@ def test_a_two_rank_job_follows_the_single_process_run(job, two_ranks):
     ]
 
 
+@pytest.fixture(scope="module")
+def crashed(job):
+    """A two-rank job whose rank 1 fails at its 15th batch, after the checkpoint of step 10."""
+    root, overrides = job
+    return _launch(root, overrides, "resumed", 2, CRASH_AT=15, CRASH_RANK=1)
+
+
 @pytest.mark.slow
-def test_a_killed_two_rank_job_resumes_to_the_same_weights(job, two_ranks):
+def test_a_killed_two_rank_job_resumes_to_the_same_weights(job, two_ranks, crashed):
     root, overrides = job
     whole = load_checkpoint(two_ranks[0])
-    crashed = _launch(root, overrides, "resumed", 2, CRASH_AT=15)
     assert crashed.returncode != 0
     run_dir = _only_run(root / "resumed")
     assert load_checkpoint(run_dir)["step"] == 10
@@ -283,11 +292,9 @@ def test_a_killed_two_rank_job_resumes_to_the_same_weights(job, two_ranks):
 
 
 @pytest.mark.slow
-def test_a_rank_that_dies_stops_the_job(job):
-    root, overrides = job
-    done = _launch(root, overrides, "dies", 2, CRASH_AT=5, CRASH_RANK=1)
-    assert done.returncode != 0
-    assert "injected failure on rank 1" in done.stderr
+def test_a_rank_that_dies_stops_the_job(crashed):
+    assert crashed.returncode != 0
+    assert "injected failure on rank 1" in crashed.stderr
 
 
 @pytest.mark.slow

@@ -21,10 +21,10 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors.metaworld.dataset import build_dataset
-from tar_rl.collectors.metaworld.evaluate import evaluate
+from tar_rl.collectors.metaworld.evaluate import RolloutPool, evaluate
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.common import ConvEncoder
-from tar_rl.recipes import make_objective, policy_from_checkpoint, train
+from tar_rl.recipes import make_objective, offline_bc, policy_from_checkpoint, train
 from tar_rl.recipes.config import ObjectiveConfig
 from tar_rl.runs import load_checkpoint
 
@@ -50,14 +50,29 @@ print(json.dumps({{"obs": obs.tolist(), "img": img.tolist()}}))
 
 @pytest.fixture(scope="module")
 def image_datasets(tmp_path_factory):
-    """A dataset folder shared by the recipe jobs (one rendered dataset, collected once)."""
-    return tmp_path_factory.mktemp("recipe-image-datasets")
+    """A dataset folder shared by the module (one rendered dataset, collected once: ``image_dataset``)."""
+    return tmp_path_factory.mktemp("image-datasets")
+
+
+class _KeptPool(RolloutPool):
+    """A pool that outlives the jobs it serves: leaving a job's ``with`` keeps its worker; ``close()`` ends it."""
+
+    def __exit__(self, *exc) -> None:
+        pass
 
 
 @pytest.fixture(scope="module")
-def image_dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("image-datasets")
-    return build_dataset(root, ["reach"], 1, seed=0, image_size=S, workers=1, progress=False, verbose=False)
+def image_pool():
+    """The worker process that renders the module's image evaluations, started once."""
+    pool = _KeptPool()
+    yield pool
+    pool.close()
+
+
+@pytest.fixture(scope="module")
+def image_dataset(image_datasets):
+    """The rendered dataset of the recipe jobs (``tiny``'s: reach, 2 demonstrations, seed 0): they load it."""
+    return build_dataset(image_datasets, ["reach"], 2, seed=0, image_size=S, workers=1, progress=False, verbose=False)
 
 
 @pytest.mark.slow
@@ -197,10 +212,12 @@ class _PixelProbe(TensorDictModuleBase):
 
 
 @pytest.mark.slow
-def test_evaluation_gives_the_policy_the_image_of_each_slot(image_dataset, tmp_path):
+def test_evaluation_gives_the_policy_the_image_of_each_slot(image_dataset, image_pool, tmp_path):
     # Rollout k of seed 0 starts in the variation of demonstration k: the same first image.
     path = tmp_path / "seen.npy"
-    rows = evaluate(_PixelProbe(path), ["reach"], rollouts_per_task=2, seed=0, horizon=3, workers=1, image_size=S)
+    rows = evaluate(
+        _PixelProbe(path), ["reach"], rollouts_per_task=2, seed=0, horizon=3, workers=1, image_size=S, pool=image_pool
+    )
     assert len(rows) == 2 and not rows.success.any()
     seen = np.load(path)
     np.testing.assert_array_equal(seen[0], image_dataset.data["pixels"][0].numpy())
@@ -209,7 +226,10 @@ def test_evaluation_gives_the_policy_the_image_of_each_slot(image_dataset, tmp_p
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", HEADS)
-def test_a_tiny_image_job_trains_and_evaluates_through_the_recipe(name, tmp_path, image_datasets):
+def test_a_tiny_image_job_trains_and_evaluates_through_the_recipe(
+    name, tmp_path, image_datasets, image_dataset, image_pool, monkeypatch
+):
+    monkeypatch.setattr(offline_bc, "make_evaluation_pool", lambda suite: image_pool)  # the jobs share one worker
     config = tiny(
         tmp_path,
         image_datasets,

@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
@@ -28,6 +27,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
 from tar_rl import TARLoss
+from tar_rl.cli import main as cli_main
 from tar_rl.data import SegmentSampler
 from tar_rl.objectives import WEIGHTINGS
 from tar_rl.policies import POLICIES, DataInfo
@@ -225,29 +225,23 @@ def test_structured_values_are_type_checked():
         cfg.optim.not_there = 1
 
 
-def test_cli_cfg_job_prints_the_config_without_running(tmp_path):
-    out = subprocess.run(
-        [sys.executable, "-m", "tar_rl", "train", "objective=uniform", "optim.steps=7", "--cfg", "job"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert out.returncode == 0, out.stderr
-    assert "name: uniform" in out.stdout and "steps: 7" in out.stdout
+# The command line in this process (`python -m tar_rl` itself: tests/test_package.py).
+
+
+def test_cli_cfg_job_prints_the_config_without_running(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["train", "objective=uniform", "optim.steps=7", "--cfg", "job"]) == 0
+    out = capsys.readouterr().out
+    assert "name: uniform" in out and "steps: 7" in out
     assert list(tmp_path.iterdir()) == []  # no run directory, no Hydra output folder
 
 
-def test_cli_reports_a_bad_key_and_fails(tmp_path):
-    out = subprocess.run(
-        [sys.executable, "-m", "tar_rl", "train", "optim.lrr=1"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert out.returncode != 0
-    assert "lrr" in out.stderr
+def test_cli_reports_a_bad_key_and_fails(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as info:
+        cli_main(["train", "optim.lrr=1"])
+    assert info.value.code not in (0, None)
+    assert "lrr" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -690,13 +684,23 @@ def test_nan_steps_can_be_skipped(tmp_path, data_root, monkeypatch, capsys, obje
     assert all(torch.isfinite(v).all() for v in state["policy"].values())
 
 
-def test_multirun_sweep_over_objectives_and_its_restart_skips_finished_runs(tmp_path, data_root):
-    """A sweep through Hydra's joblib launcher; run again, it skips the finished runs."""
+def _train_command(argv: list[str]) -> int:
+    """``tar-rl train ARGV`` in this process; the logging that a Hydra launcher sets up for its process is undone."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        return cli_main(["train", *argv])
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+
+
+def test_multirun_sweep_over_objectives_and_its_restart_skips_finished_runs(tmp_path, data_root, monkeypatch, capfd):
+    """A sweep through Hydra's joblib launcher; run again, it skips the finished runs.
+
+    Both commands run in this process (`python -m tar_rl` itself: tests/test_package.py); the second finds the
+    launcher's worker processes of the first (joblib keeps them for a while)."""
     command = [
-        sys.executable,
-        "-m",
-        "tar_rl",
-        "train",
         "-m",
         "hydra/launcher=joblib",  # Hydra's joblib launcher plugin: the runs go in parallel processes
         "hydra.launcher.n_jobs=2",
@@ -713,16 +717,16 @@ def test_multirun_sweep_over_objectives_and_its_restart_skips_finished_runs(tmp_
         "eval.horizon=10",
         "eval.workers=1",
     ]
-    first = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert first.returncode == 0, first.stderr
+    monkeypatch.chdir(tmp_path)
+    assert _train_command(command) == 0
     runs = sorted(p.name.split("-")[0] for p in (tmp_path / "runs").iterdir() if p.is_dir())
     assert runs == ["tar", "uniform"]
     for run in (tmp_path / "runs").iterdir():
         if run.is_dir():
             assert json.loads((run / "summary.json").read_text())["finished"]
-    again = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert again.returncode == 0, again.stderr
-    assert again.stdout.count("finished already") == 2
+    capfd.readouterr()
+    assert _train_command(command) == 0
+    assert capfd.readouterr().out.count("finished already") == 2  # printed by the launcher's worker processes
 
 
 @pytest.mark.gpu
@@ -757,28 +761,13 @@ def test_report_compares_the_smoke_runs(smoke_run, data_root, tmp_path, capsys):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_slurm_launcher_example_composes(tmp_path):
+def test_slurm_launcher_example_composes(tmp_path, monkeypatch, capsys):
     examples = REPO / "recipes" / "examples"
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "tar_rl",
-            "train",
-            "--config-dir",
-            str(examples),
-            "hydra/launcher=slurm",
-            "hydra.launcher.partition=gpu",
-            "--cfg",
-            "hydra",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert out.returncode == 0, out.stderr
-    assert "SlurmLauncher" in out.stdout and "partition: gpu" in out.stdout
+    monkeypatch.chdir(tmp_path)
+    command = ["train", "--config-dir", str(examples), "hydra/launcher=slurm", "hydra.launcher.partition=gpu"]
+    assert cli_main([*command, "--cfg", "hydra"]) == 0
+    out = capsys.readouterr().out
+    assert "SlurmLauncher" in out and "partition: gpu" in out
 
 
 def test_settings_at_their_default_keep_run_names():
