@@ -29,7 +29,6 @@ import argparse
 import io
 import math
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
@@ -38,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the other benchmark 
 from paper_analysis import controls_markdown, fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
 from r3_tuning import seed_major
-from regimes import STUDIES, _ints, check_pairs, collect, exit_code, jobs_and_out, r3_specs, study_parser
+from regimes import check_pairs, collect, exit_code, jobs_and_out, r3_specs, study_of, study_parser
 
 COMMANDS = ("run", "table", "collect")
 BASELINE, TREATMENT = "uniform", "tar"
@@ -137,7 +136,6 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--regimes", default=None, help="the regime study's folder (default: benchmarks/results/regimes)")
     p.add_argument("--uniform", action="store_true", help="run: also train every uniform seed beside the baselines")
-    p.add_argument("--seeds", type=_ints, default=None, help="override the seeds (default: the scale's)")
     p.add_argument(
         "--weightings", type=_names, default=WEIGHTINGS, help=f"only these baselines (default: {','.join(WEIGHTINGS)})"
     )
@@ -151,9 +149,7 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
-    study = STUDIES[args.scale]
-    if args.seeds is not None:
-        study = replace(study, scale=replace(study.scale, seeds=args.seeds))
+    study = study_of(args)
     here = Path(__file__).resolve().parent / "results" / "regimes"
     jobs, out = jobs_and_out(args, study.scale, "r3_baselines", here / "baselines")
     if args.regimes is None and args.scale != "cpu":

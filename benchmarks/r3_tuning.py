@@ -309,6 +309,7 @@ def _parser() -> argparse.ArgumentParser:
         "TAR's pre-registered tuning in R3: runs and tables.",
         COMMANDS,
         "benchmarks/results/regimes/tuning",
+        seeds=False,
     )
 
 

@@ -514,10 +514,15 @@ def _ints(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
 
 
-def study_parser(prog: str, description: str, commands: Sequence[str], default_out: str) -> argparse.ArgumentParser:
+def study_parser(
+    prog: str, description: str, commands: Sequence[str], default_out: str, seeds: bool = True
+) -> argparse.ArgumentParser:
     """The command line the study's scripts share: COMMAND, ``--scale``, ``--out``, ``--data-root``, ``--jobs``,
-    ``--from`` (for ``collect``) and ``--dry-run``; a script adds its own options."""
+    ``--from`` (for ``collect``), ``--dry-run`` and, with ``seeds``, ``--seeds`` (read by :func:`study_of`); a
+    script adds its own options."""
     p = argparse.ArgumentParser(prog=prog, description=description)
+    if seeds:
+        p.add_argument("--seeds", type=_ints, default=None, help="override the seeds (default: the scale's)")
     p.add_argument("command", choices=commands)
     p.add_argument("--scale", default="cpu", choices=sorted(STUDIES))
     p.add_argument("--out", default=None, help=f"results folder (default: {default_out}; with --scale ci: required)")
@@ -526,6 +531,14 @@ def study_parser(prog: str, description: str, commands: Sequence[str], default_o
     p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
     p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
     return p
+
+
+def study_of(args: argparse.Namespace) -> Study:
+    """The study at ``--scale``, with ``--seeds`` in place of its seeds when given."""
+    study = STUDIES[args.scale]
+    if args.seeds is not None:
+        study = replace(study, scale=replace(study.scale, seeds=args.seeds))
+    return study
 
 
 def jobs_and_out(args: argparse.Namespace, scale: Scale, prog: str, default_out: Path) -> tuple[int, Path]:
@@ -550,7 +563,6 @@ def _parser() -> argparse.ArgumentParser:
     p = study_parser(
         "regimes.py", "The pre-registered regime study: runs and tables.", COMMANDS, "benchmarks/results/regimes"
     )
-    p.add_argument("--seeds", type=_ints, default=None, help="override the seeds of the pairs")
     p.add_argument("--budgets", type=_ints, default=None, help="r1: only these demonstration budgets")
     p.add_argument("--tables", default=None, help="table: write the tables here instead of into --out")
     return p
@@ -560,9 +572,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point (module docstring). Returns 0, or 1 when a run failed (the others still ran)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
-    study = STUDIES[args.scale]
-    if args.seeds is not None:
-        study = replace(study, scale=replace(study.scale, seeds=args.seeds))
+    study = study_of(args)
     jobs, out = jobs_and_out(args, study.scale, "regimes", Path(__file__).resolve().parent / "results" / "regimes")
     planner = Planner(study.scale, out, args.data_root)
     logs = out / "logs"

@@ -12,6 +12,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numeric import close, mask, t64
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
@@ -28,18 +29,6 @@ from tar_rl.objectives import (
 )
 
 BASELINES = ("tilted", "truncate", "keyframe", "focal")
-
-
-def t64(x) -> torch.Tensor:
-    return torch.tensor(x, dtype=torch.float64)
-
-
-def mask(x) -> torch.Tensor:
-    return torch.tensor(x, dtype=torch.bool)
-
-
-def close(actual: torch.Tensor, expected, *, rtol=1e-9, atol=1e-12) -> None:
-    torch.testing.assert_close(actual.double(), torch.as_tensor(expected, dtype=torch.float64), rtol=rtol, atol=atol)
 
 
 def full(n: int) -> torch.Tensor:

@@ -12,6 +12,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numeric import close, mask, t64
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
@@ -26,18 +27,6 @@ from tar_rl.objectives import (
     dro_time_weights,
     time_bins,
 )
-
-
-def t64(x) -> torch.Tensor:
-    return torch.tensor(x, dtype=torch.float64)
-
-
-def mask(x) -> torch.Tensor:
-    return torch.tensor(x, dtype=torch.bool)
-
-
-def close(actual: torch.Tensor, expected, *, rtol=1e-9, atol=1e-12) -> None:
-    torch.testing.assert_close(actual.double(), torch.as_tensor(expected, dtype=torch.float64), rtol=rtol, atol=atol)
 
 
 def uniform_log_q(bins: int) -> torch.Tensor:
