@@ -44,7 +44,7 @@ from .weighting import (
     weights_from_scores,
 )
 
-__all__ = ["check_element_losses", "element_mean", "tar_arm_weights", "tar_dimnorm_weights"]
+__all__ = ["check_element_losses", "element_mean", "masked_mean", "tar_arm_weights", "tar_dimnorm_weights"]
 
 
 def check_element_losses(losses: Tensor, valid: Tensor) -> None:
@@ -68,14 +68,21 @@ def check_element_losses(losses: Tensor, valid: Tensor) -> None:
     check_finite(losses, valid, "element")
 
 
+def masked_mean(x: Tensor, valid: Tensor, axes: tuple[int, ...]) -> Tensor:
+    """The mean of ``x`` over ``axes`` where ``valid`` is ``True``, 0 where no entry is (``x`` may be NaN
+    elsewhere); with no axes, ``x`` where valid and 0 elsewhere."""
+    kept = torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device))
+    if not axes:
+        return kept
+    return kept.sum(axes) / valid.sum(axes).clamp_min(1).to(x.dtype)
+
+
 def element_mean(x: Tensor, valid: Tensor, batch_dims: int = 2) -> Tensor:
     """Per step, the mean of ``x`` over the step's valid elements: ``[B, L, *event] -> [B, L]``; 0 if none.
 
     ``batch_dims`` counts the leading dims that index steps (``[B, L]``: 2).
     """
-    axes = tuple(range(batch_dims, x.ndim))
-    total = torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device)).sum(axes)
-    return total / valid.sum(axes).clamp_min(1).to(x.dtype)
+    return masked_mean(x, valid, tuple(range(batch_dims, x.ndim)))
 
 
 def _prepare(losses: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:

@@ -22,7 +22,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.objectives import LossModule
 
-from .elementwise import element_mean
+from .elementwise import element_mean, masked_mean
 from .schedule import MixSchedule
 from .supervision import perturb_target
 from .weighting import (
@@ -552,11 +552,7 @@ class TARLoss(LossModule):
         axes = tuple(range(tensordict.batch_dims, loss.ndim - 1))  # the event dims but the action dims
         if self.tensor_keys.event_valid is None:
             return loss.mean(axes) if axes else loss
-        valid = self._event_valid(loss, tensordict)
-        kept = torch.where(valid, loss, torch.zeros((), dtype=loss.dtype, device=loss.device))  # padding may be NaN
-        if not axes:
-            return kept
-        return kept.sum(axes) / valid.sum(axes).clamp_min(1).to(loss.dtype)
+        return masked_mean(loss, self._event_valid(loss, tensordict), axes)  # padding may be NaN
 
     def _element_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
         """The inner per-element loss ``[B, L, *event, A]`` and its event mask (all ``True`` if no ``event_valid``)."""
