@@ -13,7 +13,8 @@ interrupted ones):
   settings, seed by seed; with ``--uniform`` also every uniform seed (needed when the check fails).
 * ``table``: Table III extended with the baselines (success per difficulty group and overall, the paired
   difference of the overall success to uniform with its 95% CI and p, Holm over the baseline rows), beside
-  R3's uniform and TAR rows, recomputed from the runs (``table.md``, ``table.csv``, ``paired.csv``).
+  R3's uniform and TAR rows, recomputed from the runs (``table.md``, ``table.csv``, ``paired.csv``, written
+  into ``<out>`` or, with ``--tables DIR``, into ``DIR``).
 * ``collect --from DIR``: copy finished runs into ``<out>/runs`` (config, summary, compressed logs).
 
 **Pairing with R3's uniform runs.** The baselines are trained at a later commit than R3's runs, and the study
@@ -189,10 +190,12 @@ def main(argv: list[str] | None = None) -> int:
             "train every uniform seed beside the baselines with `run --uniform`"
         )
     md, summary, paired = table([*base, *baselines], source, note)
-    atomic_write(out / "table.md", lambda f: f.write(md))
-    write_csv_atomic(summary.round(6), out / "table.csv")
-    write_csv_atomic(paired.round(6), out / "paired.csv")
-    write_json_atomic(provenance(study.scale, argv, "r3_baselines.py"), out / "provenance.json")
+    dest = Path(args.tables) if args.tables else out
+    dest.mkdir(parents=True, exist_ok=True)
+    atomic_write(dest / "table.md", lambda f: f.write(md))
+    write_csv_atomic(summary.round(6), dest / "table.csv")
+    write_csv_atomic(paired.round(6), dest / "paired.csv")
+    write_json_atomic(provenance(study.scale, argv, "r3_baselines.py"), dest / "provenance.json")
     print(md)
     return 0
 

@@ -15,9 +15,10 @@ runs and resumes interrupted ones):
   final run has started.
 * ``final``: the selected cell, the selected variant and uniform on the final seeds, with R3's
   evaluation (seed 1000).
-* ``table``: ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on
+* ``table [--tables DIR]``: ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on
   the tuning seed, per seed) and, once final runs finished, ``final.md``/``final.csv`` (paired
-  comparisons to uniform with Holm over the two, and the MDE), all recomputed from the runs.
+  comparisons to uniform with Holm over the two, and the MDE), all recomputed from the runs and written
+  into ``<out>`` or ``DIR``.
 * ``collect --from DIR``: copy the finished runs of a runs folder into ``<out>/runs`` (config, summary,
   compressed logs; never checkpoints).
 
@@ -358,19 +359,21 @@ def main(argv: list[str] | None = None) -> int:
         if not any(success.values()):
             raise SystemExit("r3_tuning: no finished tuning run yet")
         _check_commits({k: v for k, v in loaded.items() if v})
+        dest = Path(args.tables) if args.tables else out
+        dest.mkdir(parents=True, exist_ok=True)
         md, df = tuning_table(success, tuning)
-        atomic_write(out / "tuning.md", lambda f: f.write(md))
-        write_csv_atomic(df.round(6), out / "tuning.csv")
+        atomic_write(dest / "tuning.md", lambda f: f.write(md))
+        write_csv_atomic(df.round(6), dest / "tuning.csv")
         print(md)
         if selected is not None:
             _, final = overall_success(final_specs(planner, tuning, selected))
             if final.get(BASELINE) and (final.get(selected["cell"]) or final.get(selected["variant"])):
                 _check_commits({k: v for k, v in final.items() if v})
                 md, df = final_table(final, selected)
-                atomic_write(out / "final.md", lambda f: f.write(md))
-                write_csv_atomic(df.round(6), out / "final.csv")
+                atomic_write(dest / "final.md", lambda f: f.write(md))
+                write_csv_atomic(df.round(6), dest / "final.csv")
                 print(md)
-        write_json_atomic(provenance(scale, argv, "r3_tuning.py"), out / "provenance.json")
+        write_json_atomic(provenance(scale, argv, "r3_tuning.py"), dest / "provenance.json")
     return exit_code(failed)
 
 

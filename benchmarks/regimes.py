@@ -518,8 +518,8 @@ def study_parser(
     prog: str, description: str, commands: Sequence[str], default_out: str, seeds: bool = True
 ) -> argparse.ArgumentParser:
     """The command line the study's scripts share: COMMAND, ``--scale``, ``--out``, ``--data-root``, ``--jobs``,
-    ``--from`` (for ``collect``), ``--dry-run`` and, with ``seeds``, ``--seeds`` (read by :func:`study_of`); a
-    script adds its own options."""
+    ``--from`` (for ``collect``), ``--tables`` (for ``table``), ``--dry-run`` and, with ``seeds``, ``--seeds``
+    (read by :func:`study_of`); a script adds its own options."""
     p = argparse.ArgumentParser(prog=prog, description=description)
     if seeds:
         p.add_argument("--seeds", type=_ints, default=None, help="override the seeds (default: the scale's)")
@@ -529,6 +529,7 @@ def study_parser(
     p.add_argument("--data-root", default="datasets", help="dataset cache folder (default: ./datasets)")
     p.add_argument("--jobs", type=int, default=None, help="runs trained at once (default: the scale's)")
     p.add_argument("--from", dest="source", default=None, help="collect: the runs folder to copy finished runs from")
+    p.add_argument("--tables", default=None, help="table: write the tables here instead of into --out")
     p.add_argument("--dry-run", action="store_true", help="print the plan; run nothing")
     return p
 
@@ -564,7 +565,6 @@ def _parser() -> argparse.ArgumentParser:
         "regimes.py", "The pre-registered regime study: runs and tables.", COMMANDS, "benchmarks/results/regimes"
     )
     p.add_argument("--budgets", type=_ints, default=None, help="r1: only these demonstration budgets")
-    p.add_argument("--tables", default=None, help="table: write the tables here instead of into --out")
     return p
 
 

@@ -77,6 +77,9 @@ def test_the_commands_at_the_ci_scale(baselines, tmp_path, data_root):
         baselines.main(["table", *common])
     assert baselines.main(["run", *common]) == 0
     assert baselines.main(["table", *common]) == 0
+    assert baselines.main(["table", *common, "--tables", str(tmp_path / "tables")]) == 0
+    for name in ("table.md", "table.csv", "paired.csv"):  # --tables writes the same tables elsewhere
+        assert (tmp_path / "tables" / name).read_text() == (out / name).read_text(), name
     md = (out / "table.md").read_text()
     assert "R3's committed runs (uniform's seed 0 trained again at the baselines' commit: 0 of" in md
     paired = pd.read_csv(out / "paired.csv")

@@ -117,6 +117,8 @@ def test_the_commands_at_the_ci_scale(tuning, tmp_path, data_root, capsys):
     plan = capsys.readouterr().out
     assert "3 runs: 0 finished" in plan and plan.count("eval.seed=1000") == 3
     assert tuning.main(["table", *common]) == 0
+    assert tuning.main(["table", *common, "--tables", str(tmp_path / "tables")]) == 0
+    assert (tmp_path / "tables" / "tuning.md").read_text() == (out / "tuning.md").read_text()
     table = pd.read_csv(out / "tuning.csv")
     assert sorted(table.setting) == sorted(["tar-g0.5-paper-w3", "tar_arm", "tar_dimnorm", "uniform"])
     assert not (out / "final.md").exists()  # no final run has finished
