@@ -336,14 +336,15 @@ def regimes_block() -> str:
     out = [
         REGIMES_BEGIN,
         "",
-        "| regime | pairs | success % uniform / TAR | Δ success [95% CI] | Holm p |",
-        "|---|---|---|---|---|",
+        "| regime | pairs | passes | success % uniform / TAR | Δ success [95% CI] | Holm p | MDE (80%) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         ci = f"[{_num(r['d_success_ci_low'], 2, True)}, {_num(r['d_success_ci_high'], 2, True)}]"
         out.append(
-            f"| {r['regime']} | {r['pairs']} | {_num(r['success_uniform'], 1)} / {_num(r['success_tar'], 1)} | "
-            f"{_num(r['d_success'], 2, True)} {ci} | {_num(r['holm_p'], 3)} |"
+            f"| {r['regime']} | {r['pairs']} | {_num(r['passes_uniform'], 0)} | {_num(r['success_uniform'], 1)} / "
+            f"{_num(r['success_tar'], 1)} | {_num(r['d_success'], 2, True)} {ci} | {_num(r['holm_p'], 3)} | "
+            f"{_num(r['mde_success'], 1)} |"
         )
     out += ["", REGIMES_END]
     return "\n".join(out)
