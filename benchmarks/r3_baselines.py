@@ -89,7 +89,7 @@ def reproduces(run_dir: Path, committed_dir: Path) -> tuple[bool, str]:
 
 def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.DataFrame, pd.DataFrame]:
     """Table III with the baselines: markdown, the compare table and the paired table with Holm over the baselines."""
-    from tar_rl.report import compare, holm, paired_table
+    from tar_rl.report import compare, holm, min_detectable_effect, paired_table
 
     done = [r for r in runs if r.finished]
     summary = compare(done, file=io.StringIO())
@@ -97,13 +97,20 @@ def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.D
     overall = paired[(paired["metric"] == "success") & (paired["level"] == "overall")]
     rows = overall[overall["objective"].isin(WEIGHTINGS)]
     paired["holm_p"] = math.nan
+    paired["mde"] = math.nan
     for index, p in zip(rows.index, holm(list(rows["p_value"]))):
         paired.loc[index, "holm_p"] = p
+    for index, rec in overall.iterrows():
+        paired.loc[index, "mde"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
     family = done[0].policy
-    holm_lines = ["| objective | Δ overall vs uniform | p | Holm p (over the baselines) |", "|---|---|---|---|"]
+    holm_lines = [
+        "| objective | pairs | Δ overall vs uniform | p | Holm p (over the baselines) | MDE (80%) |",
+        "|---|---|---|---|---|---|",
+    ]
     for rec in paired.loc[rows.index].to_dict("records"):
         holm_lines.append(
-            f"| {rec['objective']} | {rec['delta_mean']:+.2f} | {fmt_p(rec['p_value'])} | {fmt_p(rec['holm_p'])} |"
+            f"| {rec['objective']} | {rec['n_pairs']} | {rec['delta_mean']:+.2f} | {fmt_p(rec['p_value'])} | "
+            f"{fmt_p(rec['holm_p'])} | {'-' if math.isnan(rec['mde']) else format(rec['mde'], '.2f')} |"
         )
     md = "\n".join(
         [

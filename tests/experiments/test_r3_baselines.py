@@ -51,9 +51,11 @@ def test_reproduction_compares_the_final_evaluation_rollout_by_rollout(baselines
     assert missing == (False, "one of the two runs has no evaluation")
 
 
-def test_the_plan_is_every_baseline_at_r3s_settings(baselines, capsys):
+def test_the_plan_is_every_baseline_at_r3s_settings(baselines, capsys, tmp_path):
     assert baselines.WEIGHTINGS == ("tilted", "truncate", "keyframe", "focal", "dro_time")
-    assert baselines.main(["run", "--dry-run", "--data-root", "datasets", "--seeds", "0,1"]) == 0
+    # an empty results folder: the plan lists every run (the committed folder's finished ones are not listed)
+    out = ["--out", str(tmp_path), "--data-root", "datasets"]
+    assert baselines.main(["run", "--dry-run", *out, "--seeds", "0,1"]) == 0
     plan = capsys.readouterr().out
     assert "11 runs" in plan  # uniform's seed 0 again, then 5 baselines x 2 seeds (8 by default)
     lines = [line for line in plan.splitlines() if "to run:" in line]
@@ -99,3 +101,11 @@ def test_the_commands_at_the_ci_scale(baselines, tmp_path, data_root):
     shutil.rmtree(next((out / "runs").glob("uniform-*")))
     with pytest.raises(SystemExit, match=r"does not reproduce R3's committed run .*run --uniform"):
         baselines.main(["table", *common])
+
+
+def test_committed_tables_equal_what_the_table_command_computes(baselines, tmp_path):
+    """The tables under benchmarks/results/regimes/baselines are recomputed from its committed runs and R3's."""
+    assert baselines.main(["table", "--tables", str(tmp_path)]) == 0
+    committed = BENCH / "results" / "regimes" / "baselines"
+    for name in ("table.md", "table.csv", "paired.csv"):
+        assert (tmp_path / name).read_text() == (committed / name).read_text(), name
