@@ -9,8 +9,10 @@ What it generates, each from where the code or the results hold it:
   value no check accepts, and the refusal's message names the choices or the range.
 * ``docs/figures/*.png``: copies of the figures the pages embed, from the benchmark results that draw them
   (:data:`FIGURES`).
-* ``README.md``, between the ``<!-- generated: regimes -->`` markers: the regime study's decision table in brief,
-  from ``benchmarks/results/regimes/decision.csv``.
+* the blocks between ``<!-- generated: NAME ... -->`` and ``<!-- end generated: NAME -->`` markers
+  (:data:`BLOCKS`): in ``README.md`` the regime study's decision table in brief, from
+  ``benchmarks/results/regimes/decision.csv``; in ``docs/experiments.md`` Table III extended with the baselines,
+  from ``benchmarks/results/regimes/baselines/table.md``.
 
 ``tests/test_docs.py`` fails when a committed file differs from what this command writes.
 """
@@ -29,10 +31,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIG_PAGE = "docs/config.md"
-README = "README.md"
 REGIMES_CSV = "benchmarks/results/regimes/decision.csv"
-REGIMES_BEGIN = "<!-- generated: regimes (python docs/generate.py) -->"
-REGIMES_END = "<!-- end generated: regimes -->"
+BASELINES_TABLE = "benchmarks/results/regimes/baselines/table.md"
 
 #: The embedded figures: docs/figures/<name> <- the result file that a benchmark command draws.
 FIGURES = {
@@ -320,7 +320,7 @@ def _yes(flag: bool) -> str:
     return "yes" if flag else "no"
 
 
-# -- The README's regime block ------------------------------------------------------------------
+# -- Generated blocks of the pages ---------------------------------------------------------------
 
 
 def _num(text: str, digits: int, signed: bool = False) -> str:
@@ -334,8 +334,6 @@ def regimes_block() -> str:
     with open(REPO / REGIMES_CSV, newline="") as f:
         rows = list(csv.DictReader(f))
     out = [
-        REGIMES_BEGIN,
-        "",
         "| regime | pairs | passes | success % uniform / TAR | Δ success [95% CI] | Holm p | MDE (80%) |",
         "|---|---|---|---|---|---|---|",
     ]
@@ -346,17 +344,45 @@ def regimes_block() -> str:
             f"{_num(r['success_tar'], 1)} | {_num(r['d_success'], 2, True)} {ci} | {_num(r['holm_p'], 3)} | "
             f"{_num(r['mde_success'], 1)} |"
         )
-    out += ["", REGIMES_END]
     return "\n".join(out)
 
 
-def readme_text() -> str:
-    """README.md with its generated block as the command writes it."""
-    text = (REPO / README).read_text()
-    begin, end = text.find(REGIMES_BEGIN), text.find(REGIMES_END)
-    if begin < 0 or end < begin:
-        raise SystemExit(f"{README} lacks the markers {REGIMES_BEGIN!r} ... {REGIMES_END!r}")
-    return text[:begin] + regimes_block() + text[end + len(REGIMES_END) :]
+def baselines_block() -> str:
+    """Table III extended with the baselines, as ``r3_baselines.py table`` writes it, without its title."""
+    lines = (REPO / BASELINES_TABLE).read_text().strip().splitlines()
+    return "\n".join(lines[1:] if lines[0].startswith("# ") else lines).strip()
+
+
+#: The generated blocks: (page, block name) -> the function that writes the block's content.
+BLOCKS = {
+    ("README.md", "regimes"): regimes_block,
+    ("docs/experiments.md", "baselines"): baselines_block,
+}
+
+
+def begin_marker(name: str) -> str:
+    return f"<!-- generated: {name} (python docs/generate.py) -->"
+
+
+def end_marker(name: str) -> str:
+    return f"<!-- end generated: {name} -->"
+
+
+def page_with_blocks(page: str) -> str:
+    """``page`` with each of its generated blocks as the command writes it (a blank line inside each marker)."""
+    text = (REPO / page).read_text()
+    for (where, name), block in BLOCKS.items():
+        if where != page:
+            continue
+        begin, end = text.find(begin_marker(name)), text.find(end_marker(name))
+        if begin < 0 or end < begin:
+            raise SystemExit(f"{page} lacks the markers {begin_marker(name)!r} ... {end_marker(name)!r}")
+        text = (
+            text[:begin]
+            + f"{begin_marker(name)}\n\n{block()}\n\n{end_marker(name)}"
+            + text[end + len(end_marker(name)) :]
+        )
+    return text
 
 
 # -- The command --------------------------------------------------------------------------------
@@ -364,7 +390,9 @@ def readme_text() -> str:
 
 def outputs() -> dict[str, bytes]:
     """Every generated file, by its path relative to the repository, with the content the command writes."""
-    files = {CONFIG_PAGE: config_page().encode(), README: readme_text().encode()}
+    files = {CONFIG_PAGE: config_page().encode()}
+    for page in dict.fromkeys(page for page, _ in BLOCKS):
+        files[page] = page_with_blocks(page).encode()
     for name, source in FIGURES.items():
         files[f"docs/figures/{name}"] = (REPO / source).read_bytes()
     return files
