@@ -38,7 +38,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the other benchmark 
 from paper_analysis import controls_markdown, fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
 from r3_tuning import seed_major
-from regimes import check_pairs, collect, exit_code, jobs_and_out, r3_specs, study_of, study_parser
+from regimes import (
+    check_pairs,
+    collect,
+    exit_code,
+    finite_mean,
+    fmt_num,
+    jobs_and_out,
+    r3_specs,
+    study_of,
+    study_parser,
+)
 
 COMMANDS = ("run", "table", "collect")
 BASELINE, TREATMENT = "uniform", "tar"
@@ -87,11 +97,56 @@ def reproduces(run_dir: Path, committed_dir: Path) -> tuple[bool, str]:
     return differ == 0, f"{differ} of {len(theirs)} rollouts differ"
 
 
-def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.DataFrame, pd.DataFrame]:
-    """Table III with the baselines: markdown, the compare table and the paired table with Holm over the baselines."""
+# The share of the last training steps over which a run's weight statistics are averaged (as the final train loss).
+FINAL_SHARE = 0.05
+
+
+def fit_table(runs: list) -> pd.DataFrame:
+    """Per objective, means over its finished runs: the fit diagnostics of each run's summary (the final uniform
+    training loss, the held-out per-step loss, the alignment) and, over the last :data:`FINAL_SHARE` of training
+    steps, the largest weight in a segment and the weights' effective-sample-size fraction (from ``metrics.csv``)."""
+    rows = []
+    for objective in dict.fromkeys(r.objective for r in runs):
+        mine = [r for r in runs if r.objective == objective and r.finished]
+        fits = [r.summary.get("fit") or {} for r in mine]
+        row = {"objective": objective, "runs": len(mine)}
+        row["train_loss"] = finite_mean(f.get("final_uniform_loss") for f in fits)
+        row["heldout_loss"] = finite_mean((f.get("heldout") or {}).get("loss") for f in fits)
+        row["alignment"] = finite_mean((f.get("alignment") or {}).get("spearman") for f in fits)
+        for name in ("weight_max", "weight_ess"):
+            row[name] = finite_mean(_final_mean(r, name) for r in mine)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _final_mean(run, name: str) -> float | None:
+    m = run.metrics
+    if m.empty or run.steps is None:
+        return None
+    rows = m[(m["phase"] == "train") & (m["name"] == name) & (m["step"] > (1 - FINAL_SHARE) * run.steps)]
+    return float(rows["value"].mean()) if len(rows) else None
+
+
+def _fit_markdown(fit: pd.DataFrame) -> list[str]:
+    lines = [
+        "| objective | runs | final train loss | held-out loss | alignment | largest weight | ESS |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in fit.to_dict("records"):
+        lines.append(
+            f"| {r['objective']} | {r['runs']} | {fmt_num(r['train_loss'], 4)} | {fmt_num(r['heldout_loss'], 4)} | "
+            f"{fmt_num(r['alignment'], 2, True)} | {fmt_num(r['weight_max'], 2)} | {fmt_num(r['weight_ess'], 2)} |"
+        )
+    return lines
+
+
+def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """Table III with the baselines: markdown, the compare table, the paired table with Holm over the baselines and
+    the fit table (:func:`fit_table`)."""
     from tar_rl.report import compare, holm, min_detectable_effect, paired_table
 
     done = [r for r in runs if r.finished]
+    fit = fit_table(done)
     summary = compare(done, file=io.StringIO())
     paired = paired_table(done, file=io.StringIO())
     overall = paired[(paired["metric"] == "success") & (paired["level"] == "overall")]
@@ -125,9 +180,17 @@ def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.D
             controls_markdown(paired, summary, family),
             "",
             *holm_lines,
+            "",
+            f"Fit and weights, means over each objective's runs: the final uniform training loss and the held-out "
+            f"per-step loss (each run's `summary.json`, `fit`), the alignment (Spearman correlation over ten bins of "
+            f"episode time between the weight on training demonstrations and the held-out loss), and over the last "
+            f"{FINAL_SHARE:.0%} of training steps the largest weight in a segment and the effective-sample-size "
+            f"fraction of the weights (1 = uniform).",
+            "",
+            *_fit_markdown(fit),
         ]
     )
-    return md + "\n", summary, paired
+    return md + "\n", summary, paired, fit
 
 
 def _names(text: str) -> tuple[str, ...]:
@@ -196,12 +259,13 @@ def main(argv: list[str] | None = None) -> int:
             f"r3_baselines: uniform's seed 0 trained again does not reproduce R3's committed run ({why}); "
             "train every uniform seed beside the baselines with `run --uniform`"
         )
-    md, summary, paired = table([*base, *baselines], source, note)
+    md, summary, paired, fit = table([*base, *baselines], source, note)
     dest = Path(args.tables) if args.tables else out
     dest.mkdir(parents=True, exist_ok=True)
     atomic_write(dest / "table.md", lambda f: f.write(md))
     write_csv_atomic(summary.round(6), dest / "table.csv")
     write_csv_atomic(paired.round(6), dest / "paired.csv")
+    write_csv_atomic(fit.round(6), dest / "fit.csv")
     write_json_atomic(provenance(study.scale, argv, "r3_baselines.py"), dest / "provenance.json")
     print(md)
     return 0

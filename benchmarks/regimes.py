@@ -361,7 +361,8 @@ def check_pairs(runs: Sequence) -> None:
             raise SystemExit(f"regimes: the pair of seed {seed} ({names}) was trained at different {what}; re-run one")
 
 
-def _mean(values) -> float:
+def finite_mean(values) -> float:
+    """The mean of the finite values among ``values`` (``None`` left out); ``nan`` when there is none."""
     values = [float(v) for v in values if v is not None and math.isfinite(float(v))]
     return sum(values) / len(values) if values else math.nan
 
@@ -385,15 +386,16 @@ def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
     for obj in (BASELINE, TREATMENT):
         mine = [r for r in runs if r.objective == obj and r.finished]
         fits = [_fit(r) for r in mine]
-        row[f"passes_{obj}"] = _mean(f.get("passes") for f in fits)
-        row[f"train_loss_{obj}"] = _mean(f.get("final_uniform_loss") for f in fits)
-        row[f"heldout_loss_{obj}"] = _mean((f.get("heldout") or {}).get("loss") for f in fits)
-        row[f"alignment_{obj}"] = _mean((f.get("alignment") or {}).get("spearman") for f in fits)
+        row[f"passes_{obj}"] = finite_mean(f.get("passes") for f in fits)
+        row[f"train_loss_{obj}"] = finite_mean(f.get("final_uniform_loss") for f in fits)
+        row[f"heldout_loss_{obj}"] = finite_mean((f.get("heldout") or {}).get("loss") for f in fits)
+        row[f"alignment_{obj}"] = finite_mean((f.get("alignment") or {}).get("spearman") for f in fits)
     groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(regime=label)
     return row, groups
 
 
-def _fmt(v: float, digits: int = 1, signed: bool = False) -> str:
+def fmt_num(v: float, digits: int = 1, signed: bool = False) -> str:
+    """``v`` with ``digits`` decimals (and its sign with ``signed``) for a markdown table; ``-`` when not finite."""
     if v is None or not math.isfinite(v):
         return "-"
     return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
@@ -408,14 +410,15 @@ def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        ci = f"[{_fmt(r['d_success_ci_low'], 2, True)}, {_fmt(r['d_success_ci_high'], 2, True)}]"
+        ci = f"[{fmt_num(r['d_success_ci_low'], 2, True)}, {fmt_num(r['d_success_ci_high'], 2, True)}]"
         lines.append(
-            f"| {r['regime']} | {r['pairs']} | {_fmt(r['success_uniform'])} / {_fmt(r['success_tar'])} "
-            f"| {_fmt(r['d_success'], 2, True)} {ci} | {_fmt_p(r['p_success'])} | {_fmt_p(r['holm_p'])} "
-            f"| {_fmt(r['mde_success'], 2)} | {_fmt(r['d_fast20'], 2, True)} | {_fmt(r['d_neps'], 2, True)} "
-            f"| {_fmt(r['passes_uniform'], 0)} | {_fmt(r['train_loss_uniform'], 4)} / {_fmt(r['train_loss_tar'], 4)} "
-            f"| {_fmt(r['heldout_loss_uniform'], 4)} / {_fmt(r['heldout_loss_tar'], 4)} "
-            f"| {_fmt(r['alignment_uniform'], 2, True)} / {_fmt(r['alignment_tar'], 2, True)} |"
+            f"| {r['regime']} | {r['pairs']} | {fmt_num(r['success_uniform'])} / {fmt_num(r['success_tar'])} "
+            f"| {fmt_num(r['d_success'], 2, True)} {ci} | {_fmt_p(r['p_success'])} | {_fmt_p(r['holm_p'])} "
+            f"| {fmt_num(r['mde_success'], 2)} | {fmt_num(r['d_fast20'], 2, True)} | {fmt_num(r['d_neps'], 2, True)} "
+            f"| {fmt_num(r['passes_uniform'], 0)} "
+            f"| {fmt_num(r['train_loss_uniform'], 4)} / {fmt_num(r['train_loss_tar'], 4)} "
+            f"| {fmt_num(r['heldout_loss_uniform'], 4)} / {fmt_num(r['heldout_loss_tar'], 4)} "
+            f"| {fmt_num(r['alignment_uniform'], 2, True)} / {fmt_num(r['alignment_tar'], 2, True)} |"
         )
     out = ["# Where does TAR help? Decision table", "", *lines, ""]
     out += [
@@ -430,10 +433,10 @@ def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[
         "|---|---|---|---|---|---|---|",
     ]
     for g in groups.to_dict("records"):
-        ci = f"[{_fmt(g['ci_low'], 2, True)}, {_fmt(g['ci_high'], 2, True)}]"
+        ci = f"[{fmt_num(g['ci_low'], 2, True)}, {fmt_num(g['ci_high'], 2, True)}]"
         out.append(
-            f"| {g['regime']} | {g['level']} | {g['n_pairs']} | {_fmt(g['baseline_mean'])} "
-            f"| {_fmt(g['objective_mean'])} | {_fmt(g['delta_mean'], 2, True)} {ci} | {_fmt_p(g['p_value'])} |"
+            f"| {g['regime']} | {g['level']} | {g['n_pairs']} | {fmt_num(g['baseline_mean'])} "
+            f"| {fmt_num(g['objective_mean'])} | {fmt_num(g['delta_mean'], 2, True)} {ci} | {_fmt_p(g['p_value'])} |"
         )
     pending = {k: v for k, v in missing.items() if v}
     if pending:

@@ -80,7 +80,7 @@ def test_the_commands_at_the_ci_scale(baselines, tmp_path, data_root):
     assert baselines.main(["run", *common]) == 0
     assert baselines.main(["table", *common]) == 0
     assert baselines.main(["table", *common, "--tables", str(tmp_path / "tables")]) == 0
-    for name in ("table.md", "table.csv", "paired.csv"):  # --tables writes the same tables elsewhere
+    for name in ("table.md", "table.csv", "paired.csv", "fit.csv"):  # --tables writes the same tables elsewhere
         assert (tmp_path / "tables" / name).read_text() == (out / name).read_text(), name
     md = (out / "table.md").read_text()
     assert "R3's committed runs (uniform's seed 0 trained again at the baselines' commit: 0 of" in md
@@ -107,5 +107,33 @@ def test_committed_tables_equal_what_the_table_command_computes(baselines, tmp_p
     """The tables under benchmarks/results/regimes/baselines are recomputed from its committed runs and R3's."""
     assert baselines.main(["table", "--tables", str(tmp_path)]) == 0
     committed = BENCH / "results" / "regimes" / "baselines"
-    for name in ("table.md", "table.csv", "paired.csv"):
+    for name in ("table.md", "table.csv", "paired.csv", "fit.csv"):
         assert (tmp_path / name).read_text() == (committed / name).read_text(), name
+
+
+def test_the_fit_table_by_hand(baselines):
+    from types import SimpleNamespace
+
+    def run(objective, fit, weights):
+        # 200 training steps; weight_max logged every 10 steps: the last 5% (steps 191-200) hold the log at 200
+        rows = [(step, "train", "weight_max", w) for step, w in zip(range(10, 201, 10), weights)]
+        rows.append((200, "eval", "weight_max", 99.0))  # another phase: not read
+        metrics = pd.DataFrame(rows, columns=["step", "phase", "name", "value"])
+        return SimpleNamespace(objective=objective, finished=True, steps=200, summary={"fit": fit}, metrics=metrics)
+
+    fit_a = {"final_uniform_loss": 0.02, "heldout": {"loss": 0.03}, "alignment": {"spearman": 0.5}}
+    fit_b = {"final_uniform_loss": 0.04, "heldout": {"loss": 0.05}, "alignment": {"spearman": -0.1}}
+    runs = [
+        run("tilted", fit_a, [9.0] * 18 + [2.0, 4.0]),
+        run("tilted", fit_b, [9.0] * 18 + [6.0, 6.0]),
+        run("uniform", {}, [1.0] * 20),
+    ]
+    fit = baselines.fit_table(runs).set_index("objective")
+    assert fit.loc["tilted", "runs"] == 2
+    assert fit.loc["tilted", "train_loss"] == pytest.approx(0.03)
+    assert fit.loc["tilted", "heldout_loss"] == pytest.approx(0.04)
+    assert fit.loc["tilted", "alignment"] == pytest.approx(0.2)
+    assert fit.loc["tilted", "weight_max"] == pytest.approx((4.0 + 6.0) / 2)  # step 190's 2.0 is not in the last 5%
+    assert fit.loc["uniform", "weight_max"] == 1.0
+    assert fit.loc["uniform", "train_loss"] != fit.loc["uniform", "train_loss"]  # no fit diagnostics: NaN
+    assert fit.loc["tilted", "weight_ess"] != fit.loc["tilted", "weight_ess"]  # not logged: NaN
