@@ -201,9 +201,11 @@ def overall_success(specs: dict[str, list[Spec]]) -> tuple[dict[str, dict[int, f
 
 
 def _check_commits(loaded: dict[str, list]) -> None:
+    """Refuse a setting's run and uniform's run of one seed trained at different commits or machines (uniform's
+    runs may not have finished yet)."""
     for name, runs in loaded.items():
         if name != BASELINE:
-            check_pairs([*runs, *loaded[BASELINE]])
+            check_pairs([*runs, *loaded.get(BASELINE, [])])
 
 
 def tuning_table(success: dict[str, dict[int, float]], tuning: Tuning) -> tuple[str, pd.DataFrame]:
@@ -237,7 +239,8 @@ def tuning_table(success: dict[str, dict[int, float]], tuning: Tuning) -> tuple[
         ci = "" if math.isnan(r["ci_low"]) else f" [{r['ci_low']:+.2f}, {r['ci_high']:+.2f}]"
         delta = "-" if r["setting"] == BASELINE or not r["n_pairs"] else f"{r['delta']:+.2f}{ci}"
         per_seed = " | ".join("-" if math.isnan(r[f"seed{s}"]) else f"{r[f'seed{s}']:.1f}" for s in tuning.tune_seeds)
-        lines.append(f"| {r['setting']} | {r['success']:.1f} | {delta} | {r['n_pairs']} | {per_seed} |")
+        success = "-" if math.isnan(r["success"]) else f"{r['success']:.1f}"
+        lines.append(f"| {r['setting']} | {success} | {delta} | {r['n_pairs']} | {per_seed} |")
     md = [
         "# TAR's tuning in R3: every setting on the tuning seed",
         "",

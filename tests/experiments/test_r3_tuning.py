@@ -122,3 +122,23 @@ def test_the_commands_at_the_ci_scale(tuning, tmp_path, data_root, capsys):
     table = pd.read_csv(out / "tuning.csv")
     assert sorted(table.setting) == sorted(["tar-g0.5-paper-w3", "tar_arm", "tar_dimnorm", "uniform"])
     assert not (out / "final.md").exists()  # no final run has finished
+    # a sweep cut short before uniform's run finished: the table shows the finished settings without a difference
+    uniform = next(p for p in (out / "runs").iterdir() if p.name.startswith("uniform-"))
+    (uniform / "summary.json").rename(uniform / "summary.json.away")
+    assert tuning.main(["table", *common, "--tables", str(tmp_path / "partial")]) == 0
+    partial = pd.read_csv(tmp_path / "partial" / "tuning.csv").set_index("setting")
+    assert (
+        partial.loc["tar_arm", "n_pairs"] == 0
+        and partial.loc["tar_arm", "success"] == table.set_index("setting").loc["tar_arm", "success"]
+    )
+    assert "| uniform | - | - | 0 |" in (tmp_path / "partial" / "tuning.md").read_text()
+
+
+def test_committed_tables_equal_what_the_table_command_computes(tuning, tmp_path):
+    """The tables under benchmarks/results/regimes/tuning are recomputed from its committed runs."""
+    assert tuning.main(["table", "--tables", str(tmp_path)]) == 0
+    committed = BENCH.parent / "results" / "regimes" / "tuning"
+    for name in ("tuning.md", "tuning.csv", "final.md", "final.csv"):
+        assert (tmp_path / name).is_file() == (committed / name).is_file(), name
+        if (committed / name).is_file():
+            assert (tmp_path / name).read_text() == (committed / name).read_text(), name
