@@ -12,7 +12,8 @@ What it generates, each from where the code or the results hold it:
 * the blocks between ``<!-- generated: NAME ... -->`` and ``<!-- end generated: NAME -->`` markers
   (:data:`BLOCKS`): in ``README.md`` the regime study's decision table in brief, from
   ``benchmarks/results/regimes/decision.csv``; in ``docs/experiments.md`` Table III extended with the baselines,
-  from ``benchmarks/results/regimes/baselines/table.md``.
+  from ``benchmarks/results/regimes/baselines/table.md``, and TAR's tuning in R3, from ``tuning.md`` and
+  ``final.md`` under ``benchmarks/results/regimes/tuning/``.
 
 ``tests/test_docs.py`` fails when a committed file differs from what this command writes.
 """
@@ -33,6 +34,8 @@ REPO = Path(__file__).resolve().parent.parent
 CONFIG_PAGE = "docs/config.md"
 REGIMES_CSV = "benchmarks/results/regimes/decision.csv"
 BASELINES_TABLE = "benchmarks/results/regimes/baselines/table.md"
+TUNING_TABLE = "benchmarks/results/regimes/tuning/tuning.md"
+TUNING_FINAL = "benchmarks/results/regimes/tuning/final.md"
 
 #: The embedded figures: docs/figures/<name> <- the result file that a benchmark command draws.
 FIGURES = {
@@ -347,16 +350,29 @@ def regimes_block() -> str:
     return "\n".join(out)
 
 
-def baselines_block() -> str:
-    """Table III extended with the baselines, as ``r3_baselines.py table`` writes it, without its title."""
-    lines = (REPO / BASELINES_TABLE).read_text().strip().splitlines()
+def _untitled(path: str) -> str:
+    """A markdown table file written by a benchmark command, without its title line."""
+    lines = (REPO / path).read_text().strip().splitlines()
     return "\n".join(lines[1:] if lines[0].startswith("# ") else lines).strip()
+
+
+def baselines_block() -> str:
+    """Table III extended with the baselines, as ``r3_baselines.py table`` writes it."""
+    return _untitled(BASELINES_TABLE)
+
+
+def tuning_block() -> str:
+    """TAR's tuning in R3 on the tuning seed and, once its final runs finished, the final comparison, as
+    ``r3_tuning.py table`` writes them."""
+    final = REPO / TUNING_FINAL
+    return _untitled(TUNING_TABLE) + (f"\n\n{_untitled(TUNING_FINAL)}" if final.is_file() else "")
 
 
 #: The generated blocks: (page, block name) -> the function that writes the block's content.
 BLOCKS = {
     ("README.md", "regimes"): regimes_block,
     ("docs/experiments.md", "baselines"): baselines_block,
+    ("docs/experiments.md", "tuning"): tuning_block,
 }
 
 
