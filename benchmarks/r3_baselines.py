@@ -43,11 +43,13 @@ from regimes import (
     collect,
     exit_code,
     finite_mean,
+    fit_means,
     fmt_num,
     jobs_and_out,
     r3_specs,
     study_of,
     study_parser,
+    tables_dir,
 )
 
 COMMANDS = ("run", "table", "collect")
@@ -108,11 +110,9 @@ def fit_table(runs: list) -> pd.DataFrame:
     rows = []
     for objective in dict.fromkeys(r.objective for r in runs):
         mine = [r for r in runs if r.objective == objective and r.finished]
-        fits = [r.summary.get("fit") or {} for r in mine]
+        fit = fit_means(mine)
         row = {"objective": objective, "runs": len(mine)}
-        row["train_loss"] = finite_mean(f.get("final_uniform_loss") for f in fits)
-        row["heldout_loss"] = finite_mean((f.get("heldout") or {}).get("loss") for f in fits)
-        row["alignment"] = finite_mean((f.get("alignment") or {}).get("spearman") for f in fits)
+        row.update({name: fit[name] for name in ("train_loss", "heldout_loss", "alignment")})
         for name in ("weight_max", "weight_ess"):
             row[name] = finite_mean(_final_mean(r, name) for r in mine)
         rows.append(row)
@@ -260,8 +260,7 @@ def main(argv: list[str] | None = None) -> int:
             "train every uniform seed beside the baselines with `run --uniform`"
         )
     md, summary, paired, fit = table([*base, *baselines], source, note)
-    dest = Path(args.tables) if args.tables else out
-    dest.mkdir(parents=True, exist_ok=True)
+    dest = tables_dir(args, out)
     atomic_write(dest / "table.md", lambda f: f.write(md))
     write_csv_atomic(summary.round(6), dest / "table.csv")
     write_csv_atomic(paired.round(6), dest / "paired.csv")

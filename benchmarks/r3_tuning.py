@@ -41,7 +41,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # regimes.py and paper_experiments.py beside this script
 from paper_analysis import fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
-from regimes import STUDIES, check_pairs, collect, exit_code, jobs_and_out, study_parser
+from regimes import STUDIES, check_pairs, collect, exit_code, jobs_and_out, study_parser, tables_dir
 
 COMMANDS = ("tune", "select", "final", "table", "collect")
 BASELINE = "uniform"
@@ -362,8 +362,7 @@ def main(argv: list[str] | None = None) -> int:
         if not any(success.values()):
             raise SystemExit("r3_tuning: no finished tuning run yet")
         _check_commits({k: v for k, v in loaded.items() if v})
-        dest = Path(args.tables) if args.tables else out
-        dest.mkdir(parents=True, exist_ok=True)
+        dest = tables_dir(args, out)
         md, df = tuning_table(success, tuning)
         atomic_write(dest / "tuning.md", lambda f: f.write(md))
         write_csv_atomic(df.round(6), dest / "tuning.csv")

@@ -367,6 +367,25 @@ def finite_mean(values) -> float:
     return sum(values) / len(values) if values else math.nan
 
 
+def fit_means(runs: Sequence) -> dict[str, float]:
+    """Means over ``runs`` of their summaries' fit diagnostics: ``passes``, ``train_loss`` (the final uniform
+    training loss), ``heldout_loss`` and ``alignment`` (its Spearman correlation); ``nan`` where none has it."""
+    fits = [_fit(r) for r in runs]
+    return {
+        "passes": finite_mean(f.get("passes") for f in fits),
+        "train_loss": finite_mean(f.get("final_uniform_loss") for f in fits),
+        "heldout_loss": finite_mean((f.get("heldout") or {}).get("loss") for f in fits),
+        "alignment": finite_mean((f.get("alignment") or {}).get("spearman") for f in fits),
+    }
+
+
+def tables_dir(args: argparse.Namespace, out: Path) -> Path:
+    """Where ``table`` writes: ``--tables`` when given, else the results folder (created)."""
+    dest = Path(args.tables) if args.tables else out
+    dest.mkdir(parents=True, exist_ok=True)
+    return dest
+
+
 def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
     """One decision-table row (success, Fast20, NEPS statistics and fit diagnostics) and the per-group rows."""
     from tar_rl.report import min_detectable_effect, paired_table
@@ -385,11 +404,7 @@ def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
             row["mde_success"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
     for obj in (BASELINE, TREATMENT):
         mine = [r for r in runs if r.objective == obj and r.finished]
-        fits = [_fit(r) for r in mine]
-        row[f"passes_{obj}"] = finite_mean(f.get("passes") for f in fits)
-        row[f"train_loss_{obj}"] = finite_mean(f.get("final_uniform_loss") for f in fits)
-        row[f"heldout_loss_{obj}"] = finite_mean((f.get("heldout") or {}).get("loss") for f in fits)
-        row[f"alignment_{obj}"] = finite_mean((f.get("alignment") or {}).get("spearman") for f in fits)
+        row.update({f"{name}_{obj}": value for name, value in fit_means(mine).items()})
     groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(regime=label)
     return row, groups
 
@@ -609,9 +624,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "r3":
         failed += execute(study.scale, r3_specs(study, planner), jobs, args.dry_run, logs)
     elif args.command == "table":
-        dest = Path(args.tables) if args.tables else out
-        dest.mkdir(parents=True, exist_ok=True)
-        print(write_tables(study, planner, out, provenance(study.scale, argv, "regimes.py"), dest))
+        print(write_tables(study, planner, out, provenance(study.scale, argv, "regimes.py"), tables_dir(args, out)))
     return exit_code(failed)
 
 
