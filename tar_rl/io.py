@@ -53,9 +53,10 @@ def _open(fd: int, binary: bool, path: Path) -> IO:
     return os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", newline="")
 
 
-def write_csv_atomic(df, path: str | os.PathLike) -> Path:
-    """Write a pandas DataFrame as CSV (no index) atomically."""
-    return atomic_write(path, lambda f: df.to_csv(f, index=False))
+def write_csv_atomic(df, path: str | os.PathLike, float_format: str | None = None) -> Path:
+    """Write a pandas DataFrame as CSV (no index) atomically; ``float_format`` (e.g. ``"%.9g"``) formats its floats,
+    which pandas otherwise writes with the 17 digits that round-trip float64."""
+    return atomic_write(path, lambda f: df.to_csv(f, index=False, float_format=float_format))
 
 
 def write_json_atomic(obj: Any, path: str | os.PathLike) -> Path:

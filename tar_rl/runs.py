@@ -40,6 +40,7 @@ __all__ = [
     "WEIGHTS_COLUMNS",
     "WEIGHTS_DIM_COLUMN",
     "WEIGHTS_FILE",
+    "WEIGHTS_FLOAT_FORMAT",
     "RunLogs",
     "config_differences",
     "git_commit",
@@ -71,6 +72,9 @@ ROLLOUTS_FILE = "eval_rollouts.csv"
 ROLLOUTS_COLUMNS: tuple[str, ...] = (*REQUIRED_COLUMNS, "step")
 #: Per-step loss and weight along recorded demonstrations, columns :func:`weights_columns`.
 WEIGHTS_FILE = "weights.csv"
+#: How :data:`WEIGHTS_FILE` writes its floats: its losses, weights and gripper actions are float32, and nine
+#: significant digits are the fewest that give back every float32 exactly (a third smaller than pandas' 17).
+WEIGHTS_FLOAT_FORMAT = "%.9g"
 #: The columns every :data:`WEIGHTS_FILE` has: the training step of the recording, the task, the demonstration
 #: (episode id) and its time step ``t``, the per-step loss, TAR's weight and the gripper (last) action dim.
 #: A head whose loss has event dims adds ``loss_dim0`` .. ``loss_dim{A-1}``, each action dim's loss at the step.
@@ -216,7 +220,8 @@ class RunLogs:
         if self.weights:
             width = max(len(row) for row in self.weights)
             rows = [(*row, *[math.nan] * (width - len(row))) for row in self.weights]
-            write_csv_atomic(pd.DataFrame(rows, columns=weights_columns(width)), self.run_dir / WEIGHTS_FILE)
+            df = pd.DataFrame(rows, columns=weights_columns(width))
+            write_csv_atomic(df, self.run_dir / WEIGHTS_FILE, float_format=WEIGHTS_FLOAT_FORMAT)
 
 
 def rollout_records(step: int, df: pd.DataFrame) -> list[dict]:

@@ -13,6 +13,7 @@ import logging
 import math
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -333,6 +334,19 @@ def test_weights_file_has_the_per_dim_columns_and_leaves_them_empty_on_shorter_r
     assert list(table.columns) == [*WEIGHTS_COLUMNS, "loss_dim0", "loss_dim1"]
     assert table["loss_dim0"].isna().tolist() == [True, False] and table["loss_dim1"].iloc[1] == 0.3
     assert weights_columns(7) == list(WEIGHTS_COLUMNS)
+
+
+def test_weights_file_gives_back_every_float32_exactly_with_nine_digits(tmp_path):
+    # float32 values whose shortest exact decimal needs all nine significant digits, and a tiny and a huge one
+    values = np.array([0.1, 1 / 3, 16777217.0, 1.4e-45, 3.4028235e38, 0.682382524], dtype=np.float32)
+    rows = [(1, "reach", 0, t, float(v), float(v), -1.0, float(v)) for t, v in enumerate(values)]
+    RunLogs(tmp_path, weights=rows).write()
+    text = (tmp_path / "weights.csv").read_text().splitlines()
+    assert text[2].split(",")[4] == "0.333333343"  # float32(1/3) = 0.3333333432674408..., nine digits
+    table = pd.read_csv(tmp_path / "weights.csv")
+    for column in ("loss", "weight", "loss_dim0"):
+        back = table[column].to_numpy().astype(np.float32)
+        assert back.view(np.int32).tolist() == values.view(np.int32).tolist(), column
 
 
 # -- The job ------------------------------------------------------------------------------------
