@@ -47,6 +47,7 @@ from regimes import (
     fmt_num,
     jobs_and_out,
     r3_specs,
+    reproduces,
     study_of,
     study_parser,
     tables_dir,
@@ -55,8 +56,6 @@ from regimes import (
 COMMANDS = ("run", "table", "collect")
 BASELINE, TREATMENT = "uniform", "tar"
 WEIGHTINGS = ("tilted", "truncate", "keyframe", "focal", "dro_time")
-# The rollout columns that must agree for a reproduced run to stand in for the committed one.
-REPRODUCED_COLUMNS = ("task", "variation_seed", "variation_index", "success", "steps")
 
 
 def baseline_specs(planner: Planner, study, weightings=WEIGHTINGS) -> dict[str, list[Spec]]:
@@ -73,30 +72,6 @@ def r3_runs(study, regimes_out: Path) -> dict[str, list[Spec]]:
     planner = Planner(study.scale, regimes_out, "datasets")
     specs = r3_specs(study, planner)
     return {o: [s for s in specs if s.config["objective"]["name"] == o] for o in (BASELINE, TREATMENT)}
-
-
-def final_rollouts(run_dir: Path) -> pd.DataFrame:
-    """The final evaluation's rollouts of a run (:data:`REPRODUCED_COLUMNS`), in a fixed order."""
-    from tar_rl import runs
-    from tar_rl.report import run_file
-
-    path = run_file(run_dir, runs.ROLLOUTS_FILE)
-    if not path.is_file():
-        return pd.DataFrame(columns=list(REPRODUCED_COLUMNS))
-    df = pd.read_csv(path)
-    cols = list(REPRODUCED_COLUMNS)
-    return df[df["step"] == df["step"].max()][cols].sort_values(cols[:3]).reset_index(drop=True)
-
-
-def reproduces(run_dir: Path, committed_dir: Path) -> tuple[bool, str]:
-    """Whether a reproduced run's final per-rollout results equal the committed run's, and how many differ."""
-    mine, theirs = final_rollouts(run_dir), final_rollouts(committed_dir)
-    if mine.empty or theirs.empty:
-        return False, "one of the two runs has no evaluation"
-    if mine.shape != theirs.shape:
-        return False, f"{len(mine)} rollouts against {len(theirs)}"
-    differ = int((mine != theirs).any(axis=1).sum())
-    return differ == 0, f"{differ} of {len(theirs)} rollouts differ"
 
 
 # The share of the last training steps over which a run's weight statistics are averaged (as the final train loss).

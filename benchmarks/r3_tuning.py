@@ -17,8 +17,9 @@ runs and resumes interrupted ones):
   evaluation (seed 1000).
 * ``table [--tables DIR]``: ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on
   the tuning seed, per seed) and, once final runs finished, ``final.md``/``final.csv`` (paired
-  comparisons to uniform with Holm over the two, and the MDE), all recomputed from the runs and written
-  into ``<out>`` or ``DIR``.
+  comparisons to uniform with Holm over the two, and the MDE; at the cpu scale also the paper's defaults as
+  R3 compared them, from the regime study's ``decision.csv``, and how many final uniform runs reproduce R3's
+  committed ones), all recomputed from the runs and written into ``<out>`` or ``DIR``.
 * ``collect --from DIR``: copy the finished runs of a runs folder into ``<out>/runs`` (config, summary,
   compressed logs; never checkpoints).
 
@@ -41,7 +42,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # regimes.py and paper_experiments.py beside this script
 from paper_analysis import fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
-from regimes import STUDIES, check_pairs, collect, exit_code, jobs_and_out, study_parser, tables_dir
+from regimes import STUDIES, check_pairs, collect, exit_code, jobs_and_out, reproduces, study_parser, tables_dir
 
 COMMANDS = ("tune", "select", "final", "table", "collect")
 BASELINE = "uniform"
@@ -252,8 +253,44 @@ def tuning_table(success: dict[str, dict[int, float]], tuning: Tuning) -> tuple[
     return "\n".join(md) + "\n", df
 
 
-def final_table(loaded: dict[str, list], selected: dict) -> tuple[str, pd.DataFrame]:
-    """The selected cell and variant against uniform on the final seeds: paired t, Holm over the two, MDE."""
+def paper_reference(decision_csv: Path) -> dict | None:
+    """R3's comparison of the paper's defaults with uniform (the ``R3`` row of the regime study's
+    ``decision.csv``) as a row of :func:`final_table`; ``None`` without that file or row."""
+    if not decision_csv.is_file():
+        return None
+    rows = pd.read_csv(decision_csv).set_index("regime")
+    if "R3" not in rows.index:
+        return None
+    r = rows.loc["R3"]
+    return {
+        "role": "paper defaults (R3)",
+        "setting": cell_name(PAPER["gamma"], PAPER["cap"], PAPER["w_max"]),
+        "pairs": int(r["pairs"]),
+        "uniform": r["success_uniform"],
+        "setting_success": r["success_tar"],
+        "delta": r["d_success"],
+        "ci_low": r["d_success_ci_low"],
+        "ci_high": r["d_success_ci_high"],
+        "p": r["p_success"],
+        "mde": r["mde_success"],
+    }
+
+
+def uniform_reproduced(final_uniform: Sequence[Path], r3_runs: Path) -> tuple[int, int]:
+    """How many of the final uniform runs give the same final rollouts as R3's committed run of the same name
+    (under ``r3_runs``), of how many have one: the runs the paper's defaults were compared with in R3."""
+    pairs = [(run, r3_runs / run.name) for run in final_uniform if (r3_runs / run.name).is_dir()]
+    return sum(reproduces(run, committed)[0] for run, committed in pairs), len(pairs)
+
+
+def final_table(
+    loaded: dict[str, list], selected: dict, reference: dict | None = None, reproduced: tuple[int, int] | None = None
+) -> tuple[str, pd.DataFrame]:
+    """The selected cell and variant against uniform on the final seeds: paired t, Holm over the two, MDE.
+
+    ``reference`` (:func:`paper_reference`) adds the paper's defaults as R3 measured them, outside the Holm
+    correction; ``reproduced`` (:func:`uniform_reproduced`) says whether R3's uniform runs are the final ones.
+    """
     from tar_rl.report import holm, min_detectable_effect, paired_table
 
     rows = []
@@ -279,6 +316,8 @@ def final_table(loaded: dict[str, list], selected: dict) -> tuple[str, pd.DataFr
         )
     for r, p in zip(rows, holm([r["p"] for r in rows])):
         r["holm_p"] = p
+    if reference is not None:
+        rows.append({**reference, "holm_p": math.nan})
     lines = [
         "| role | setting | pairs | success % U / S | Δ [95% CI] | p | Holm p | MDE (80%) |",
         "|---|---|---|---|---|---|---|---|",
@@ -286,10 +325,24 @@ def final_table(loaded: dict[str, list], selected: dict) -> tuple[str, pd.DataFr
     for r in rows:
         lines.append(
             f"| {r['role']} | {r['setting']} | {r['pairs']} | {r['uniform']:.1f} / {r['setting_success']:.1f} "
-            f"| {r['delta']:+.2f} [{r['ci_low']:+.2f}, {r['ci_high']:+.2f}] | {fmt_p(r['p'])} | {fmt_p(r['holm_p'])} "
-            f"| {r['mde']:.2f} |"
+            f"| {r['delta']:+.2f} [{r['ci_low']:+.2f}, {r['ci_high']:+.2f}] | {fmt_p(r['p'])} "
+            f"| {'-' if math.isnan(r['holm_p']) else fmt_p(r['holm_p'])} | {r['mde']:.2f} |"
         )
-    md = ["# TAR's tuning in R3: the selected settings on the final seed", "", *lines]
+    notes = [
+        "Success in % at R3's evaluation (20 rollouts per task at seed 1000); Δ = setting - uniform over paired "
+        "seeds (95% CI, paired t-test); Holm over the cell and the variant."
+    ]
+    if reference is not None:
+        same = (
+            ""
+            if reproduced is None
+            else (
+                f" Uniform's final runs give the same rollouts as R3's committed uniform runs in {reproduced[0]} of "
+                f"{reproduced[1]} seeds."
+            )
+        )
+        notes.append(f"The paper's defaults: R3's own comparison (the regime study), not part of the correction.{same}")
+    md = ["# TAR's tuning in R3: the selected settings on the final seed", "", *notes, "", *lines]
     return "\n".join(md) + "\n", pd.DataFrame(rows)
 
 
@@ -371,7 +424,11 @@ def main(argv: list[str] | None = None) -> int:
             _, final = overall_success(final_specs(planner, tuning, selected))
             if final.get(BASELINE) and (final.get(selected["cell"]) or final.get(selected["variant"])):
                 _check_commits({k: v for k, v in final.items() if v})
-                md, df = final_table(final, selected)
+                regimes = Path(__file__).resolve().parent / "results" / "regimes"
+                reference = paper_reference(regimes / "decision.csv") if args.scale == "cpu" else None
+                final_uniform = [s.run_dir for s in final_specs(planner, tuning, selected)[BASELINE] if s.finished]
+                reproduced = uniform_reproduced(final_uniform, regimes / "runs") if reference else None
+                md, df = final_table(final, selected, reference, reproduced)
                 atomic_write(dest / "final.md", lambda f: f.write(md))
                 write_csv_atomic(df.round(6), dest / "final.csv")
                 print(md)

@@ -63,6 +63,8 @@ SOURCE_TASKS = (
 SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
 # Files of a run kept in the repository beside its config and summary, gzip-compressed.
 PACKED = (runs.ROLLOUTS_FILE, runs.METRICS_FILE, runs.WEIGHTS_FILE)
+# The rollout columns that must agree for a run trained again to stand in for a committed one.
+REPRODUCED_COLUMNS = ("task", "variation_seed", "variation_index", "success", "steps")
 
 
 @dataclass(frozen=True)
@@ -359,6 +361,27 @@ def check_pairs(runs: Sequence) -> None:
             names = ", ".join(r.name for r in pair)
             what = "commits" if len(commits) > 1 else "machines"
             raise SystemExit(f"regimes: the pair of seed {seed} ({names}) was trained at different {what}; re-run one")
+
+
+def final_rollouts(run_dir: Path) -> pd.DataFrame:
+    """The final evaluation's rollouts of a run (:data:`REPRODUCED_COLUMNS`), in a fixed order."""
+    path = run_file(run_dir, runs.ROLLOUTS_FILE)
+    if not path.is_file():
+        return pd.DataFrame(columns=list(REPRODUCED_COLUMNS))
+    df = pd.read_csv(path)
+    cols = list(REPRODUCED_COLUMNS)
+    return df[df["step"] == df["step"].max()][cols].sort_values(cols[:3]).reset_index(drop=True)
+
+
+def reproduces(run_dir: Path, committed_dir: Path) -> tuple[bool, str]:
+    """Whether a reproduced run's final per-rollout results equal the committed run's, and how many differ."""
+    mine, theirs = final_rollouts(run_dir), final_rollouts(committed_dir)
+    if mine.empty or theirs.empty:
+        return False, "one of the two runs has no evaluation"
+    if mine.shape != theirs.shape:
+        return False, f"{len(mine)} rollouts against {len(theirs)}"
+    differ = int((mine != theirs).any(axis=1).sum())
+    return differ == 0, f"{differ} of {len(theirs)} rollouts differ"
 
 
 def finite_mean(values) -> float:

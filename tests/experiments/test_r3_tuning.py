@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import sys
 
 import pandas as pd
 import pytest
 from paths import REPO
+from run_helpers import ROLLOUTS, write_run
 
 BENCH = REPO / "benchmarks" / "r3_tuning.py"
 
@@ -95,6 +97,58 @@ def test_the_tuning_table_by_hand(tuning):
     assert rows.loc["tar-g1-paper-w3", "delta"] == pytest.approx(-2.0)
     assert rows.loc["uniform", "seed3"] == 86.0
     assert "| tar_arm | 83.5 | +0.50" in md
+
+
+def test_the_final_table_by_hand(tuning, tmp_path):
+    from tar_rl.report import load_run
+
+    # overall success (run_helpers): uniform 37.5 and 62.5; the cell has tar's rollouts, 75 and 75 (differences
+    # 37.5 and 12.5); the variant has uniform's rollouts with the seeds swapped (differences +25 and -25)
+    runs = {
+        "uniform": [write_run(tmp_path, "uniform", s, ROLLOUTS[("uniform", s)]) for s in (0, 1)],
+        "tar-g0.5-paper-w3": [write_run(tmp_path, "tar", s, ROLLOUTS[("tar", s)]) for s in (0, 1)],
+        "tar_arm": [write_run(tmp_path, "tar_arm", s, ROLLOUTS[("uniform", 1 - s)]) for s in (0, 1)],
+    }
+    loaded = {name: [load_run(p) for p in paths] for name, paths in runs.items()}
+    selected = {"cell": "tar-g0.5-paper-w3", "variant": "tar_arm"}
+    decision = tmp_path / "decision.csv"
+    pd.DataFrame(
+        [
+            {"regime": "R1", "pairs": 8, "success_uniform": 1.0, "success_tar": 1.0, "d_success": 0.0},
+            {
+                **{"regime": "R3", "pairs": 8, "success_uniform": 88.9, "success_tar": 86.9, "d_success": -2.05},
+                **{"d_success_ci_low": -4.17, "d_success_ci_high": 0.07, "p_success": 0.056, "mde_success": 2.9},
+            },
+        ]
+    ).to_csv(decision, index=False)
+    reference = tuning.paper_reference(decision)
+    md, df = tuning.final_table(loaded, selected, reference, (3, 4))
+    rows = df.set_index("role")
+    cell, variant, paper = rows.loc["cell"], rows.loc["variant"], rows.loc["paper defaults (R3)"]
+    assert (cell.uniform, cell.setting_success, cell.delta) == pytest.approx((50.0, 75.0, 25.0))
+    # n = 2: t = 25 / (17.678 / sqrt 2) = 2 with 1 df, p = 1 - 2 atan(2) / pi; the CI is 25 +- t_.975,1 x 12.5
+    assert cell.p == pytest.approx(1 - 2 * math.atan(2) / math.pi, abs=1e-6)
+    assert (cell.ci_low, cell.ci_high) == pytest.approx((25 - 12.7062 * 12.5, 25 + 12.7062 * 12.5), abs=0.01)
+    assert cell.mde == pytest.approx((12.7062 + 1.37638) * 12.5, abs=0.01)  # (t_.975,1 + t_.8,1) sd / sqrt 2
+    assert (variant.delta, variant.p) == pytest.approx((0.0, 1.0))
+    assert (cell.holm_p, variant.holm_p) == pytest.approx((2 * cell.p, 1.0))  # Holm over the two only
+    assert paper.setting == "tar-g1-paper-w3" and (paper.delta, paper.pairs, paper.mde) == (-2.05, 8, 2.9)
+    assert math.isnan(paper.holm_p)
+    assert "| paper defaults (R3) | tar-g1-paper-w3 | 8 | 88.9 / 86.9 | -2.05 [-4.17, +0.07] | 0.056 | - | 2.90 |" in md
+    assert "in 3 of 4 seeds" in md
+    assert tuning.paper_reference(tmp_path / "none.csv") is None
+    pd.DataFrame([{"regime": "R1", "pairs": 8}]).to_csv(decision, index=False)
+    assert tuning.paper_reference(decision) is None
+
+
+def test_uniform_reproduced_counts_the_final_runs_equal_to_r3s(tuning, tmp_path):
+    final, r3 = tmp_path / "final", tmp_path / "r3"
+    same = write_run(final, "uniform", 0, ROLLOUTS[("uniform", 0)], name="uniform-mlp-s0-aaaa")
+    write_run(r3, "uniform", 0, ROLLOUTS[("uniform", 0)], name="uniform-mlp-s0-aaaa")
+    other = write_run(final, "uniform", 1, ROLLOUTS[("uniform", 1)], name="uniform-mlp-s1-aaaa")
+    write_run(r3, "uniform", 1, ROLLOUTS[("uniform", 0)], name="uniform-mlp-s1-aaaa")  # other rollouts
+    alone = write_run(final, "uniform", 2, ROLLOUTS[("uniform", 0)], name="uniform-mlp-s2-aaaa")  # none in R3
+    assert tuning.uniform_reproduced([same, other, alone], r3) == (1, 2)
 
 
 @pytest.mark.slow
