@@ -39,11 +39,11 @@ from paper_analysis import controls_markdown, fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
 from r3_tuning import seed_major
 from regimes import (
+    FINAL_SHARE,
     check_pairs,
     collect,
     exit_code,
-    finite_mean,
-    fit_means,
+    fit_summary,
     fmt_num,
     jobs_and_out,
     r3_specs,
@@ -74,32 +74,13 @@ def r3_runs(study, regimes_out: Path) -> dict[str, list[Spec]]:
     return {o: [s for s in specs if s.config["objective"]["name"] == o] for o in (BASELINE, TREATMENT)}
 
 
-# The share of the last training steps over which a run's weight statistics are averaged (as the final train loss).
-FINAL_SHARE = 0.05
-
-
 def fit_table(runs: list) -> pd.DataFrame:
-    """Per objective, means over its finished runs: the fit diagnostics of each run's summary (the final uniform
-    training loss, the held-out per-step loss, the alignment) and, over the last :data:`FINAL_SHARE` of training
-    steps, the largest weight in a segment and the weights' effective-sample-size fraction (from ``metrics.csv``)."""
+    """Per objective, :func:`regimes.fit_summary` of its finished runs (with the number of runs)."""
     rows = []
     for objective in dict.fromkeys(r.objective for r in runs):
         mine = [r for r in runs if r.objective == objective and r.finished]
-        fit = fit_means(mine)
-        row = {"objective": objective, "runs": len(mine)}
-        row.update({name: fit[name] for name in ("train_loss", "heldout_loss", "alignment")})
-        for name in ("weight_max", "weight_ess"):
-            row[name] = finite_mean(_final_mean(r, name) for r in mine)
-        rows.append(row)
+        rows.append({"objective": objective, "runs": len(mine), **fit_summary(mine)})
     return pd.DataFrame(rows)
-
-
-def _final_mean(run, name: str) -> float | None:
-    m = run.metrics
-    if m.empty or run.steps is None:
-        return None
-    rows = m[(m["phase"] == "train") & (m["name"] == name) & (m["step"] > (1 - FINAL_SHARE) * run.steps)]
-    return float(rows["value"].mean()) if len(rows) else None
 
 
 def _fit_markdown(fit: pd.DataFrame) -> list[str]:

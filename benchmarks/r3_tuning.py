@@ -16,10 +16,11 @@ runs and resumes interrupted ones):
 * ``final``: the selected cell, the selected variant and uniform on the final seeds, with R3's
   evaluation (seed 1000).
 * ``table [--tables DIR]``: ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on
-  the tuning seed, per seed) and, once final runs finished, ``final.md``/``final.csv`` (paired
-  comparisons to uniform with Holm over the two, and the MDE; at the cpu scale also the paper's defaults as
-  R3 compared them, from the regime study's ``decision.csv``, and how many final uniform runs reproduce R3's
-  committed ones), all recomputed from the runs and written into ``<out>`` or ``DIR``.
+  the tuning seed, per seed, with its fit and weight statistics and their rank correlations with the difference)
+  and, once final runs finished, ``final.md``/``final.csv`` (paired comparisons to uniform with Holm over the
+  two, and the MDE; at the cpu scale also the paper's defaults as R3 compared them, from the regime study's
+  ``decision.csv``, and how many final uniform runs reproduce R3's committed ones), all recomputed from the runs
+  and written into ``<out>`` or ``DIR``.
 * ``collect --from DIR``: copy the finished runs of a runs folder into ``<out>/runs`` (config, summary,
   compressed logs; never checkpoints).
 
@@ -42,7 +43,19 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # regimes.py and paper_experiments.py beside this script
 from paper_analysis import fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
-from regimes import STUDIES, check_pairs, collect, exit_code, jobs_and_out, reproduces, study_parser, tables_dir
+from regimes import (
+    FINAL_SHARE,
+    STUDIES,
+    check_pairs,
+    collect,
+    exit_code,
+    fit_summary,
+    fmt_num,
+    jobs_and_out,
+    reproduces,
+    study_parser,
+    tables_dir,
+)
 
 COMMANDS = ("tune", "select", "final", "table", "collect")
 BASELINE = "uniform"
@@ -209,8 +222,11 @@ def _check_commits(loaded: dict[str, list]) -> None:
             check_pairs([*runs, *loaded.get(BASELINE, [])])
 
 
-def tuning_table(success: dict[str, dict[int, float]], tuning: Tuning) -> tuple[str, pd.DataFrame]:
-    """Every setting's overall success and paired difference to uniform on the tuning seed, per seed."""
+def tuning_table(
+    success: dict[str, dict[int, float]], tuning: Tuning, loaded: dict[str, list] | None = None
+) -> tuple[str, pd.DataFrame]:
+    """Every setting's overall success and paired difference to uniform on the tuning seed, per seed; with the
+    loaded runs (``setting -> runs``) also each setting's :func:`regimes.fit_summary` (:func:`fit_section`)."""
     from tar_rl.report import paired_t
 
     uniform = success.get(BASELINE, {})
@@ -250,7 +266,49 @@ def tuning_table(success: dict[str, dict[int, float]], tuning: Tuning) -> tuple[
         "",
         *lines,
     ]
+    if loaded is not None:
+        fit_lines, fit = fit_section(df, loaded)
+        df = df.merge(fit, on="setting", how="left")
+        md += ["", *fit_lines]
     return "\n".join(md) + "\n", df
+
+
+def fit_section(deltas: pd.DataFrame, loaded: dict[str, list]) -> tuple[list[str], pd.DataFrame]:
+    """Per setting, :func:`regimes.fit_summary` of its finished runs, and the Spearman correlation over the TAR
+    settings (cells and variants with a paired difference) of the difference to uniform with the largest weight,
+    the ESS fraction and the held-out loss: whether the settings that concentrate the weight less, and fit
+    held-out steps better, do better."""
+    from scipy import stats
+
+    fit = pd.DataFrame(
+        [{"setting": name, **fit_summary([r for r in runs if r.finished])} for name, runs in loaded.items()]
+    )
+    lines = [
+        "Fit and weights, means over each setting's runs: the final uniform training loss, the held-out per-step "
+        f"loss, the alignment, and over the last {FINAL_SHARE:.0%} of training steps the largest weight in a "
+        "segment and the effective-sample-size fraction of the weights (1 = uniform).",
+        "",
+        "| setting | final train loss | held-out loss | alignment | largest weight | ESS |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in fit.to_dict("records"):
+        lines.append(
+            f"| {r['setting']} | {fmt_num(r['train_loss'], 4)} | {fmt_num(r['heldout_loss'], 4)} | "
+            f"{fmt_num(r['alignment'], 2, True)} | {fmt_num(r['weight_max'], 2)} | {fmt_num(r['weight_ess'], 2)} |"
+        )
+    both = deltas.merge(fit, on="setting")
+    both = both[(both["setting"] != BASELINE) & (both["n_pairs"] > 0)]
+    for name, label in (
+        ("weight_max", "the largest weight"),
+        ("weight_ess", "the ESS fraction"),
+        ("heldout_loss", "the held-out loss"),
+    ):
+        shown = both[both[name].notna()]
+        if len(shown) >= 3 and shown[name].nunique() > 1 and shown["delta"].nunique() > 1:  # else undefined
+            rho, p = stats.spearmanr(shown["delta"], shown[name])
+            n = len(shown)
+            lines += ["", f"Spearman correlation of Δ with {label} over {n} TAR settings: {rho:+.2f} (p {fmt_p(p)})."]
+    return lines, fit
 
 
 def paper_reference(decision_csv: Path) -> dict | None:
@@ -416,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit("r3_tuning: no finished tuning run yet")
         _check_commits({k: v for k, v in loaded.items() if v})
         dest = tables_dir(args, out)
-        md, df = tuning_table(success, tuning)
+        md, df = tuning_table(success, tuning, loaded)
         atomic_write(dest / "tuning.md", lambda f: f.write(md))
         write_csv_atomic(df.round(6), dest / "tuning.csv")
         print(md)

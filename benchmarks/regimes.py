@@ -363,6 +363,32 @@ def check_pairs(runs: Sequence) -> None:
             raise SystemExit(f"regimes: the pair of seed {seed} ({names}) was trained at different {what}; re-run one")
 
 
+# The share of the last training steps over which a run's weight statistics are averaged (as the final train loss).
+FINAL_SHARE = 0.05
+
+
+def final_train_mean(run, name: str) -> float | None:
+    """The mean of a run's logged training metric ``name`` over its last :data:`FINAL_SHARE` of steps (``None``
+    when it logged none there)."""
+    m = run.metrics
+    if m.empty or run.steps is None:
+        return None
+    rows = m[(m["phase"] == "train") & (m["name"] == name) & (m["step"] > (1 - FINAL_SHARE) * run.steps)]
+    return float(rows["value"].mean()) if len(rows) else None
+
+
+def fit_summary(runs: Sequence) -> dict[str, float]:
+    """Means over ``runs``: the fit diagnostics of each run's summary (the final uniform training loss
+    ``train_loss``, the held-out per-step loss ``heldout_loss``, the ``alignment``) and, over the last
+    :data:`FINAL_SHARE` of training steps, the largest weight in a segment ``weight_max`` and the weights'
+    effective-sample-size fraction ``weight_ess`` (from ``metrics.csv``); ``nan`` where none has it."""
+    fit = fit_means(runs)
+    out = {name: fit[name] for name in ("train_loss", "heldout_loss", "alignment")}
+    for name in ("weight_max", "weight_ess"):
+        out[name] = finite_mean(final_train_mean(r, name) for r in runs)
+    return out
+
+
 def final_rollouts(run_dir: Path) -> pd.DataFrame:
     """The final evaluation's rollouts of a run (:data:`REPRODUCED_COLUMNS`), in a fixed order."""
     path = run_file(run_dir, runs.ROLLOUTS_FILE)

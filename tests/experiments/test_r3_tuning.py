@@ -99,6 +99,42 @@ def test_the_tuning_table_by_hand(tuning):
     assert "| tar_arm | 83.5 | +0.50" in md
 
 
+def test_the_fit_section_by_hand(tuning):
+    from types import SimpleNamespace
+
+    def run(weight_max, ess, heldout):
+        # 100 steps; the metrics at step 100 lie in the last 5%, those at step 50 do not
+        rows = [(50, "train", "weight_max", 99.0), (100, "train", "weight_max", weight_max)]
+        rows += [(100, "train", "weight_ess", ess)] if ess is not None else []
+        metrics = pd.DataFrame(rows, columns=["step", "phase", "name", "value"])
+        fit = {"final_uniform_loss": 0.02, "heldout": {"loss": heldout}, "alignment": {"spearman": 0.1}}
+        return SimpleNamespace(finished=True, steps=100, summary={"fit": fit}, metrics=metrics)
+
+    # Δ 1, 2, 3, 4; largest weight 4, 3, 2, 1 (rho -1); ESS ranks 1, 2, 4, 3 (rho 1 - 6 x 2 / 60 = 0.8);
+    # held-out loss of the fourth setting missing from one of its two runs: the mean of the other run's
+    deltas = pd.DataFrame(
+        {"setting": ["a", "b", "c", "d", "uniform"], "delta": [1.0, 2.0, 3.0, 4.0, 0.0], "n_pairs": [2, 2, 2, 2, 2]}
+    )
+    loaded = {
+        "a": [run(4.0, 0.1, 0.04)],
+        "b": [run(3.0, 0.2, 0.03)],
+        "c": [run(2.0, 0.4, 0.02)],
+        "d": [run(1.0, 0.3, 0.01), run(1.0, None, float("nan"))],
+        "uniform": [run(1.0, 1.0, 0.01)],
+    }
+    lines, fit = tuning.fit_section(deltas, loaded)
+    fit = fit.set_index("setting")
+    assert fit.loc["d", "weight_ess"] == pytest.approx(0.3) and fit.loc["d", "heldout_loss"] == pytest.approx(0.01)
+    assert fit.loc["a", "weight_max"] == 4.0  # step 50's 99 is outside the last 5%
+    text = "\n".join(lines)
+    assert "with the largest weight over 4 TAR settings: -1.00" in text
+    assert "with the ESS fraction over 4 TAR settings: +0.80" in text
+    assert "with the held-out loss over 4 TAR settings: -1.00" in text
+    assert "| a | 0.0200 | 0.0400 | +0.10 | 4.00 | 0.10 |" in text
+    loaded = {name: [run(2.0, 0.5, 0.02)] for name in deltas["setting"]}  # constant: no correlation is defined
+    assert "Spearman" not in "\n".join(tuning.fit_section(deltas, loaded)[0])
+
+
 def test_the_final_table_by_hand(tuning, tmp_path):
     from tar_rl.report import load_run
 
