@@ -43,8 +43,8 @@ from regimes import (
     check_pairs,
     collect,
     exit_code,
+    fit_markdown,
     fit_summary,
-    fmt_num,
     jobs_and_out,
     r3_specs,
     reproduces,
@@ -81,19 +81,6 @@ def fit_table(runs: list) -> pd.DataFrame:
         mine = [r for r in runs if r.objective == objective and r.finished]
         rows.append({"objective": objective, "runs": len(mine), **fit_summary(mine)})
     return pd.DataFrame(rows)
-
-
-def _fit_markdown(fit: pd.DataFrame) -> list[str]:
-    lines = [
-        "| objective | runs | final train loss | held-out loss | alignment | largest weight | ESS |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for r in fit.to_dict("records"):
-        lines.append(
-            f"| {r['objective']} | {r['runs']} | {fmt_num(r['train_loss'], 4)} | {fmt_num(r['heldout_loss'], 4)} | "
-            f"{fmt_num(r['alignment'], 2, True)} | {fmt_num(r['weight_max'], 2)} | {fmt_num(r['weight_ess'], 2)} |"
-        )
-    return lines
 
 
 def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
@@ -143,7 +130,7 @@ def table(runs: list, uniform_source: str, reproduction: str) -> tuple[str, pd.D
             f"{FINAL_SHARE:.0%} of training steps the largest weight in a segment and the effective-sample-size "
             f"fraction of the weights (1 = uniform).",
             "",
-            *_fit_markdown(fit),
+            *fit_markdown(fit, ("objective", "runs")),
         ]
     )
     return md + "\n", summary, paired, fit

@@ -49,8 +49,8 @@ from regimes import (
     check_pairs,
     collect,
     exit_code,
+    fit_markdown,
     fit_summary,
-    fmt_num,
     jobs_and_out,
     reproduces,
     study_parser,
@@ -274,28 +274,20 @@ def tuning_table(
 
 
 def fit_section(deltas: pd.DataFrame, loaded: dict[str, list]) -> tuple[list[str], pd.DataFrame]:
-    """Per setting, :func:`regimes.fit_summary` of its finished runs, and the Spearman correlation over the TAR
+    """Per setting, :func:`regimes.fit_summary` of its (finished) runs, and the Spearman correlation over the TAR
     settings (cells and variants with a paired difference) of the difference to uniform with the largest weight,
     the ESS fraction and the held-out loss: whether the settings that concentrate the weight less, and fit
     held-out steps better, do better."""
     from scipy import stats
 
-    fit = pd.DataFrame(
-        [{"setting": name, **fit_summary([r for r in runs if r.finished])} for name, runs in loaded.items()]
-    )
+    fit = pd.DataFrame([{"setting": name, **fit_summary(runs)} for name, runs in loaded.items()])
     lines = [
         "Fit and weights, means over each setting's runs: the final uniform training loss, the held-out per-step "
         f"loss, the alignment, and over the last {FINAL_SHARE:.0%} of training steps the largest weight in a "
         "segment and the effective-sample-size fraction of the weights (1 = uniform).",
         "",
-        "| setting | final train loss | held-out loss | alignment | largest weight | ESS |",
-        "|---|---|---|---|---|---|",
+        *fit_markdown(fit, ("setting",)),
     ]
-    for r in fit.to_dict("records"):
-        lines.append(
-            f"| {r['setting']} | {fmt_num(r['train_loss'], 4)} | {fmt_num(r['heldout_loss'], 4)} | "
-            f"{fmt_num(r['alignment'], 2, True)} | {fmt_num(r['weight_max'], 2)} | {fmt_num(r['weight_ess'], 2)} |"
-        )
     both = deltas.merge(fit, on="setting")
     both = both[(both["setting"] != BASELINE) & (both["n_pairs"] > 0)]
     for name, label in (
@@ -391,15 +383,12 @@ def final_table(
         "seeds (95% CI, paired t-test); Holm over the cell and the variant."
     ]
     if reference is not None:
-        same = (
-            ""
-            if reproduced is None
-            else (
-                f" Uniform's final runs give the same rollouts as R3's committed uniform runs in {reproduced[0]} of "
-                f"{reproduced[1]} seeds."
-            )
+        notes.append("The paper's defaults: R3's own comparison (the regime study), not part of the correction.")
+    if reproduced is not None:
+        notes.append(
+            f"Uniform's final runs give the same rollouts as R3's committed uniform runs in {reproduced[0]} of "
+            f"{reproduced[1]} seeds."
         )
-        notes.append(f"The paper's defaults: R3's own comparison (the regime study), not part of the correction.{same}")
     md = ["# TAR's tuning in R3: the selected settings on the final seed", "", *notes, "", *lines]
     return "\n".join(md) + "\n", pd.DataFrame(rows)
 
@@ -479,12 +468,13 @@ def main(argv: list[str] | None = None) -> int:
         write_csv_atomic(df.round(6), dest / "tuning.csv")
         print(md)
         if selected is not None:
-            _, final = overall_success(final_specs(planner, tuning, selected))
+            planned = final_specs(planner, tuning, selected)
+            _, final = overall_success(planned)
             if final.get(BASELINE) and (final.get(selected["cell"]) or final.get(selected["variant"])):
                 _check_commits({k: v for k, v in final.items() if v})
                 regimes = Path(__file__).resolve().parent / "results" / "regimes"
                 reference = paper_reference(regimes / "decision.csv") if args.scale == "cpu" else None
-                final_uniform = [s.run_dir for s in final_specs(planner, tuning, selected)[BASELINE] if s.finished]
+                final_uniform = [s.run_dir for s in planned[BASELINE] if s.finished]
                 reproduced = uniform_reproduced(final_uniform, regimes / "runs") if reference else None
                 md, df = final_table(final, selected, reference, reproduced)
                 atomic_write(dest / "final.md", lambda f: f.write(md))

@@ -389,6 +389,18 @@ def fit_summary(runs: Sequence) -> dict[str, float]:
     return out
 
 
+def fit_markdown(fit: pd.DataFrame, keys: Sequence[str]) -> list[str]:
+    """A markdown table of :func:`fit_summary` rows: the columns ``keys`` as they are, then the five statistics."""
+    head = [*keys, "final train loss", "held-out loss", "alignment", "largest weight", "ESS"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for r in fit.to_dict("records"):
+        cells = [str(r[k]) for k in keys]
+        cells += [fmt_num(r["train_loss"], 4), fmt_num(r["heldout_loss"], 4), fmt_num(r["alignment"], 2, True)]
+        cells += [fmt_num(r["weight_max"], 2), fmt_num(r["weight_ess"], 2)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def final_rollouts(run_dir: Path) -> pd.DataFrame:
     """The final evaluation's rollouts of a run (:data:`REPRODUCED_COLUMNS`), in a fixed order."""
     path = run_file(run_dir, runs.ROLLOUTS_FILE)
