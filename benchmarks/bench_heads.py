@@ -41,6 +41,7 @@ ratio of medians; baseline ``uniform``), ``inference`` (ms per batched env step,
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -62,6 +63,7 @@ from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "heads.csv"
+DEFAULT_AGAINST_OUT = REPO / "benchmarks" / "results" / "heads_against.csv"
 
 OBS_DIM, ACTION_DIM, N_TASKS = 39, 4, 50
 CHUNK_HORIZON, HISTORY = 8, 2
@@ -138,11 +140,15 @@ def data_info() -> DataInfo:
     return DataInfo(obs_dim=OBS_DIM, action_dim=ACTION_DIM, chunk_horizon=CHUNK_HORIZON, history=HISTORY)
 
 
-def build(head: str, seed: int):
+def build(head: str, seed: int, compiled: bool = False):
+    """``head`` at its config defaults (``compiled``: with ``compile=True``, the compiled attention)."""
     torch.manual_seed(seed)
+    cfg = POLICIES[head].config()
+    if compiled:
+        cfg = dataclasses.replace(cfg, compile=True)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", "The name target_actor_network_params", UserWarning)
-        return build_policy(POLICIES[head].config(), data_info())
+        return build_policy(cfg, data_info())
 
 
 def _sync(device: torch.device) -> None:
@@ -158,9 +164,10 @@ def make_step(
     amp: bool,
     seed: int,
     compile_weights: str = "auto",
+    compiled: bool = False,
 ):
     """One training step of ``head`` under ``objective`` on its own copy and its own AdamW."""
-    policy = build(head, seed)
+    policy = build(head, seed, compiled)
     loss = TARLoss(policy.loss, objective, loss_key=policy.loss_key, compile_weights=compile_weights)
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)
@@ -300,6 +307,144 @@ def bench_inference(heads, args, device) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------------------------
+# Against another commit: the same training step in two checkouts, side by side
+# ---------------------------------------------------------------------------------------------
+
+
+def serve(args: argparse.Namespace) -> None:
+    """Worker mode (``--serve``): time training steps on request, with whatever ``tar_rl`` this process imports.
+
+    Reads one JSON request per line on stdin, ``{"head": ..., "compiled": bool, "calls": n}``, and
+    answers one JSON line, ``{"seconds": s}``, the mean time of ``n`` uniform training steps of the
+    head on its own copy (built, and warmed up ``args.warmup`` steps, at its first request). The
+    first line it writes names the ``tar_rl`` package it imported.
+    """
+    import json
+
+    import tar_rl
+
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    batch = make_batch(args.batch, args.slice_len, args.seed).to(device)
+    steps: dict[tuple[str, bool], Callable[[], None]] = {}
+    print(json.dumps({"tar_rl": str(Path(tar_rl.__file__).resolve().parent)}), flush=True)
+    for line in sys.stdin:
+        request = json.loads(line)
+        key = (request["head"], bool(request["compiled"]))
+        if key not in steps:
+            steps[key] = make_step(key[0], "uniform", batch, device, args.amp, args.seed, compiled=key[1])
+            for _ in range(args.warmup):
+                steps[key]()
+        start = time.perf_counter()
+        for _ in range(request["calls"]):
+            steps[key]()
+        print(json.dumps({"seconds": (time.perf_counter() - start) / request["calls"]}), flush=True)
+
+
+class _Worker:
+    """A ``--serve`` process importing the ``tar_rl`` of ``tree`` (a checkout of this repository)."""
+
+    def __init__(self, tree: Path, args: argparse.Namespace):
+        import json
+        import subprocess
+
+        self._json = json
+        flags = ["--device", args.device, "--threads", str(args.threads), "--batch", str(args.batch)]
+        flags += ["--slice-len", str(args.slice_len), "--seed", str(args.seed), "--warmup", str(args.warmup)]
+        flags += [] if args.amp else ["--no-amp"]
+        env = {**os.environ, "PYTHONPATH": str(tree)}
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "--serve", *flags],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        loaded = Path(self._read()["tar_rl"])
+        if loaded != (tree / "tar_rl").resolve():
+            self.close()
+            raise RuntimeError(f"the worker for {tree} imported tar_rl from {loaded}")
+
+    def _read(self) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"a benchmark worker exited with code {self.proc.wait()}")
+        return self._json.loads(line)
+
+    def time(self, head: str, compiled: bool, calls: int) -> float:
+        self.proc.stdin.write(self._json.dumps({"head": head, "compiled": compiled, "calls": calls}) + "\n")
+        self.proc.stdin.flush()
+        return float(self._read()["seconds"])
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.close()
+            self.proc.wait()
+
+
+# variant -> (checkout, compiled attention): the commit measured against, this checkout, this checkout compiled
+AGAINST_VARIANTS = {"before": ("against", False), "now": ("here", False), "now_compiled": ("here", True)}
+
+
+def bench_against(heads, args) -> list[dict]:
+    """Uniform training steps of every head at ``args.against`` and here (eager and compiled), interleaved.
+
+    The commit is checked out into a temporary git worktree; one worker process per checkout
+    builds each head from the same seed on the same batch. Every round times every (head,
+    variant) once, in a fresh random order; each sample is the mean of ``args.inner`` steps.
+    Rows: section ``against``, ms per step, ``ratio_to_baseline`` = ``before``'s median / this
+    variant's (the speed-up), baseline ``before``.
+    """
+    import subprocess
+    import tempfile
+
+    import numpy as np
+
+    compiled_heads = [h for h in heads if "compile" in {f.name for f in dataclasses.fields(POLICIES[h].config)}]
+    keys = [(h, v) for h in heads for v in AGAINST_VARIANTS if v != "now_compiled" or h in compiled_heads]
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(
+            ["git", "worktree", "add", "--detach", str(tree), args.against], cwd=REPO, check=True, capture_output=True
+        )
+        workers: dict[str, _Worker] = {}
+        try:
+            workers = {"against": _Worker(tree, args), "here": _Worker(REPO, args)}
+            for head, variant in keys:  # build, compile and warm up every variant before timing any
+                where, compiled = AGAINST_VARIANTS[variant]
+                workers[where].time(head, compiled, 1)
+            rng = np.random.default_rng(args.seed)
+            times = {key: np.empty(args.reps) for key in keys}
+            for r in range(args.reps):
+                for i in rng.permutation(len(keys)):
+                    head, variant = keys[i]
+                    where, compiled = AGAINST_VARIANTS[variant]
+                    times[head, variant][r] = workers[where].time(head, compiled, args.inner)
+        finally:
+            for worker in workers.values():
+                worker.close()
+            subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, capture_output=True)
+    rows = []
+    for head, variant in keys:
+        med, iqr = median_iqr(times[head, variant] * 1e3)
+        before = median_iqr(times[head, "before"] * 1e3)[0]
+        rows.append(
+            dict(
+                section="against",
+                head=head,
+                variant=variant,
+                median=med,
+                iqr=iqr,
+                unit="ms/step",
+                ratio_to_baseline=before / med,
+                baseline=f"before ({args.against})",
+                n=args.reps,
+            )
+        )
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
 # Output
 # ---------------------------------------------------------------------------------------------
 
@@ -340,12 +485,29 @@ def render(df: pd.DataFrame, header: list[str]) -> str:
     return "\n".join(lines)
 
 
+def render_against(df: pd.DataFrame, header: list[str]) -> str:
+    lines = [*header, ""]
+    table = df.set_index(["head", "variant"])
+    variants = [v for v in AGAINST_VARIANTS if v in set(df.variant)]
+    lines.append(f"{'head':<16}" + "".join(f"{v + ' ms':>18}{'speed-up':>10}" for v in variants))
+    for head in dict.fromkeys(df["head"]):
+        cells = ""
+        for v in variants:
+            if (head, v) in table.index:
+                row = table.loc[(head, v)]
+                cells += f"{_fmt(row['median']):>18}{_fmt(row['ratio_to_baseline']):>10}"
+            else:
+                cells += f"{'-':>18}{'-':>10}"
+        lines.append(f"{head:<16}{cells}")
+    return "\n".join(lines)
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--quick", action="store_true", help="few repetitions: a smoke test")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to train and infer (default cpu)")
     p.add_argument("--heads", default="", help="comma-separated heads (default: every registered head)")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"CSV path (default {DEFAULT_OUT})")
+    p.add_argument("--out", type=Path, default=None, help=f"CSV path (default {DEFAULT_OUT})")
     p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (default 1, for stable timings)")
     p.add_argument("--batch", type=int, default=64, help="segments per training batch B (default 64)")
     p.add_argument("--slice-len", type=int, default=16, help="steps per segment L (default 16)")
@@ -356,6 +518,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--amp", action=argparse.BooleanOptionalAction, default=True, help="bf16 autocast on CUDA")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
+        "--against",
+        default=None,
+        metavar="REV",
+        help="instead of the sections above: uniform training steps at commit REV and here (eager and compiled "
+        f"attention), side by side; CSV default {DEFAULT_AGAINST_OUT}",
+    )
+    p.add_argument("--inner", type=int, default=2, help="--against: training steps per sample (default 2)")
+    p.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)  # a worker of --against
+    p.add_argument(
         "--compile-weights",
         default="auto",
         choices=["auto", "always", "never"],
@@ -365,8 +536,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.reps = args.reps if args.reps is not None else (3 if args.quick else 30)
     args.warmup = args.warmup if args.warmup is not None else (1 if args.quick else 3)
     args.calls = args.calls if args.calls is not None else (10 if args.quick else 200)
-    if min(args.threads, args.batch, args.slice_len, args.envs, args.reps, args.calls) < 1 or args.warmup < 0:
-        p.error("--threads, --batch, --slice-len, --envs, --reps and --calls must be >= 1, --warmup >= 0")
+    sizes = (args.threads, args.batch, args.slice_len, args.envs, args.reps, args.calls, args.inner)
+    if min(sizes) < 1 or args.warmup < 0:
+        p.error("--threads, --batch, --slice-len, --envs, --reps, --calls and --inner must be >= 1, --warmup >= 0")
+    args.out = args.out or (DEFAULT_AGAINST_OUT if args.against else DEFAULT_OUT)
     heads = [h.strip() for h in args.heads.split(",") if h.strip()] or list(POLICIES)
     unknown = [h for h in heads if h not in POLICIES]
     if unknown:
@@ -379,12 +552,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     args = parse_args(argv)
+    if args.serve:
+        serve(args)
+        return pd.DataFrame()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     commit = git_commit()
     started = time.perf_counter()
 
-    rows = bench_train(args.heads, args, device) + bench_inference(args.heads, args, device)
+    if args.against:
+        rows = bench_against(args.heads, args)
+    else:
+        rows = bench_train(args.heads, args, device) + bench_inference(args.heads, args, device)
     df = pd.DataFrame(rows)
     df["batch"] = f"[{args.batch}, {args.slice_len}]"
     df["device"] = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
@@ -402,7 +581,13 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         f"warm-up steps; inference: N = {args.envs} envs, {args.calls} interleaved calls; medians over rounds",
         "paired = median over rounds of the within-round ratio tar / uniform",
     ]
-    print(render(df, header))
+    if args.against:
+        header[1] = (
+            f"uniform training step, batch [{args.batch}, {args.slice_len}], {args.reps} interleaved rounds of "
+            f"{args.inner} steps after {args.warmup} warm-up steps, at {args.against} (before) and here (now)"
+        )
+        header[2] = "speed-up = before's median / the variant's"
+    print(render_against(df, header) if args.against else render(df, header))
     print(f"\nwrote {args.out} ({len(df)} rows) in {time.perf_counter() - started:.0f} s")
     return df
 

@@ -46,6 +46,7 @@ import torch
 from torch import nn
 
 from . import DataInfo, Policy, PolicySpec, register_policy
+from .attention import key_padding_bias, multihead
 from .chunking import ChunkedHeadConfig, chunked_policy
 from .common import PROPRIO_DIMS, ObsNorm, TaskEncoder, image_encoder
 
@@ -146,6 +147,7 @@ class ACTModel(nn.Module):
         d, self.horizon, self.action_dim = cfg.dim, int(info.chunk_horizon), info.action_dim
         self.latent_dim = cfg.latent_dim
         self.kl_weight = float(cfg.kl_weight)
+        self.compiled = bool(cfg.compile)
         self.norm = ObsNorm(info.obs_dim, info.obs_mean, info.obs_std) if cfg.normalize_obs else nn.Identity()
         self.image = image_encoder(cfg.observation, info.image_size, d)
         self.obs_width = PROPRIO_DIMS if self.image is not None else info.obs_dim
@@ -193,7 +195,7 @@ class ACTModel(nn.Module):
         tokens = tokens + self.cvae_pos
         keep = torch.ones(n, 2, dtype=torch.bool, device=obs.device)
         ignore = ~torch.cat([keep, chunk_valid], dim=1)  # [N, 2 + H], True: not attended to
-        out = self.cvae_encoder(tokens, src_key_padding_mask=ignore)
+        out = self._encode(self.cvae_encoder, tokens, key_padding_bias(ignore, tokens.dtype))
         mu, logvar = self.cvae_out(out[:, 0]).chunk(2, dim=-1)
         return mu, logvar
 
@@ -216,9 +218,36 @@ class ACTModel(nn.Module):
         if self.image is not None:
             tokens.append(self.image(pixels).reshape(n, -1))
         tokens = torch.stack(tokens, dim=1) + self.token_pos
-        memory = self.encoder(tokens)
-        out = self.decoder(self.queries.expand(n, -1, -1), memory)
-        return self.head(out)
+        memory = self._encode(self.encoder, tokens)
+        return self.head(self._decode(memory))
+
+    # The transformer stacks are nn.TransformerEncoder / nn.TransformerDecoder modules (their
+    # parameters, initialisation and state-dict names), run by the two methods below: the same
+    # pre-norm computation as the modules' own forward, with the attention through
+    # tar_rl.policies.attention, and the first decoder layer's self-attention over the learned
+    # queries (the same for every sample) computed once and broadcast over the batch.
+
+    def _encode(self, stack: nn.TransformerEncoder, x: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+        """``stack(x, src_key_padding_mask=...)`` for a pre-norm encoder, ``bias`` the additive key padding bias."""
+        for layer in stack.layers:
+            x = x + layer.dropout1(multihead(layer.self_attn, layer.norm1(x), bias=bias, compiled=self.compiled))
+            x = x + _feed_forward(layer, layer.norm2(x))
+        return stack.norm(x)
+
+    def _decode(self, memory: torch.Tensor) -> torch.Tensor:
+        """``decoder(queries.expand(N, -1, -1), memory)`` for the pre-norm decoder: ``[N, H, dim]``."""
+        n = memory.shape[0]
+        x = self.queries[None]
+        for i, layer in enumerate(self.decoder.layers):
+            if i == 0 and not (self.training and layer.dropout1.p > 0):
+                # the queries are one tensor for every sample: their self-attention is too
+                x = (x + multihead(layer.self_attn, layer.norm1(x), compiled=self.compiled)).expand(n, -1, -1)
+            else:
+                x = x.expand(n, -1, -1)
+                x = x + layer.dropout1(multihead(layer.self_attn, layer.norm1(x), compiled=self.compiled))
+            x = x + layer.dropout2(multihead(layer.multihead_attn, layer.norm2(x), memory, compiled=self.compiled))
+            x = x + _feed_forward(layer, layer.norm3(x), third=True)
+        return self.decoder.norm(x)
 
     def forward(
         self,
@@ -310,6 +339,12 @@ class ACTModel(nn.Module):
         obs = self._state(history[:, -1])
         z = obs.new_zeros(obs.shape[0], self.latent_dim)
         return self.decode(obs, task_id, z, pixels)
+
+
+def _feed_forward(layer: nn.Module, x: torch.Tensor, third: bool = False) -> torch.Tensor:
+    """A transformer layer's feed-forward branch ``linear2(dropout(activation(linear1(x))))`` and its output dropout."""
+    out = layer.linear2(layer.dropout(layer.activation(layer.linear1(x))))
+    return (layer.dropout3 if third else layer.dropout2)(out)
 
 
 def _build_act(cfg: ACTConfig, info: DataInfo) -> Policy:

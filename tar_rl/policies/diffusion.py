@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from . import DataInfo, Policy, PolicySpec, register_policy
+from .attention import compile_once, use_compiled
 from .chunking import chunked_policy
 from .octo import OctoConfig, SeededSampling, check_chunk_shape, sinusoidal_embedding
 
@@ -174,6 +175,7 @@ class OctoDiffusion(SeededSampling):
             )
         super().__init__(cfg, info)
         self.train_steps, self.sample_steps, self.sampler = int(cfg.train_steps), int(cfg.sample_steps), cfg.sampler
+        self.compiled, self.dropout = bool(cfg.compile), float(cfg.dropout)
         hidden = int(cfg.denoiser_hidden)
         self.t_embed = nn.Sequential(nn.Linear(self.T_EMBED, hidden), nn.GELU(), nn.Linear(hidden, hidden))
         flat = self.horizon * self.action_dim
@@ -183,10 +185,13 @@ class OctoDiffusion(SeededSampling):
         self.register_buffer("alpha_bar", cosine_alpha_bar(self.train_steps).float(), persistent=False)
 
     def eps(self, noisy: torch.Tensor, t: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        """Predicted noise ``[..., H, A]`` from the noisy chunk ``[..., H, A]``, step ``t [...]`` and features."""
-        temb = self.t_embed(sinusoidal_embedding(t, self.T_EMBED).to(features.dtype))
-        x = torch.cat([features, temb.to(features.dtype), noisy.flatten(-2).to(features.dtype)], dim=-1)
-        return self.denoiser(x).unflatten(-1, (self.horizon, self.action_dim))
+        """Predicted noise ``[..., H, A]`` from the noisy chunk ``[..., H, A]``, step ``t [...]`` and features.
+
+        With ``policy.compile``, a training step on the CPU runs it compiled (:mod:`tar_rl.policies.attention`).
+        """
+        if use_compiled(self.compiled, features, self.dropout if self.training else 0.0):
+            return compile_once(_eps)(self, noisy, t, features)
+        return _eps(self, noisy, t, features)
 
     def step_loss(self, history, history_valid, task_id, chunk, pixels=None) -> torch.Tensor:
         """``[B, L, H, A]``: ``(eps_hat - eps) ** 2`` , ``t ~ U{0..T-1}``, ``eps ~ N(0, I)`` per step (global RNG)."""
@@ -206,6 +211,13 @@ class OctoDiffusion(SeededSampling):
         return ddim_sample(
             lambda x, t: self.eps(x, t, features), noise, self.alpha_bar, steps, eta=eta, generator=generator
         )
+
+
+def _eps(model: OctoDiffusion, noisy: torch.Tensor, t: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    """The computation of :meth:`OctoDiffusion.eps`."""
+    temb = model.t_embed(sinusoidal_embedding(t, model.T_EMBED).to(features.dtype))
+    x = torch.cat([features, temb.to(features.dtype), noisy.flatten(-2).to(features.dtype)], dim=-1)
+    return model.denoiser(x).unflatten(-1, (model.horizon, model.action_dim))
 
 
 def _build_diffusion(cfg: OctoDiffusionConfig, info: DataInfo) -> Policy:

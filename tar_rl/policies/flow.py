@@ -104,7 +104,9 @@ class FlowPolicy(SeededSampling):
         self.action_in = nn.Linear(self.action_dim + self.T_EMBED, e)
         self.action_mlp = nn.Sequential(nn.GELU(), nn.Linear(e, e))
         self.chunk_pos = nn.Parameter(torch.randn(self.horizon, e) * 0.02)
-        self.expert = nn.ModuleList(TransformerBlock(e, int(cfg.heads), cfg.dropout) for _ in range(cfg.expert_layers))
+        self.expert = nn.ModuleList(
+            TransformerBlock(e, int(cfg.heads), cfg.dropout, bool(cfg.compile)) for _ in range(cfg.expert_layers)
+        )
         self.out = nn.Sequential(nn.LayerNorm(e), nn.Linear(e, self.action_dim))
 
     def velocity(self, x: torch.Tensor, tau: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
@@ -115,9 +117,10 @@ class FlowPolicy(SeededSampling):
         a = self.action_in(torch.cat([x.to(dtype), temb.to(dtype)], dim=-1))
         a = a + self.action_mlp(a) + self.chunk_pos
         h = torch.cat([self.context(features)[:, None], a.to(dtype)], dim=1)
-        for block in self.expert:
-            h = block(h)
-        return self.out(h[:, 1:])
+        for i, block in enumerate(self.expert):
+            # only the action tokens' outputs are read after the last block
+            h = block(h, last=self.horizon if i == len(self.expert) - 1 else None)
+        return self.out(h)
 
     def step_loss(self, history, history_valid, task_id, chunk, pixels=None) -> torch.Tensor:
         """``[B, L, H, A]``: ``(v_hat(x_tau, tau) - (noise - chunk)) ** 2`` per chunk element."""
