@@ -250,7 +250,11 @@ def config_page() -> str:
         "|---|---|",
         "| `objective` | "
         + ", ".join(f"`{n}`" for n in _default_first(WEIGHTINGS, "tar"))
-        + " (the weightings below) |",
+        + " (the weightings below); presets: "
+        + ", ".join(
+            f"`{n}` ({_changes(cfgmod.ObjectiveConfig(name=p.name), p)})" for n, p in cfgmod.OBJECTIVE_PRESETS.items()
+        )
+        + " |",
         "| `policy` | " + ", ".join(f"`{n}`" for n in _default_first(POLICIES, "mlp")) + " (the heads below) |",
     ]
     for group, options in cfgmod.PRESETS.items():
