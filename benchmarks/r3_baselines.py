@@ -37,7 +37,6 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the other benchmark scripts beside this script
 from paper_analysis import controls_markdown, fmt_p
 from paper_experiments import Planner, Spec, execute, provenance
-from r3_tuning import seed_major
 from regimes import (
     FINAL_SHARE,
     check_pairs,
@@ -48,6 +47,7 @@ from regimes import (
     jobs_and_out,
     r3_specs,
     reproduces,
+    seed_major,
     study_of,
     study_parser,
     tables_dir,

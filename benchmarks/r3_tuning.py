@@ -53,6 +53,7 @@ from regimes import (
     fit_summary,
     jobs_and_out,
     reproduces,
+    seed_major,
     study_parser,
     tables_dir,
 )
@@ -394,12 +395,6 @@ def final_table(
 
 
 # -- Command line --------------------------------------------------------------------------------------
-
-
-def seed_major(specs: dict[str, list[Spec]]) -> list[Spec]:
-    """Seed by seed (every setting of the first seed, then the next), so a sweep cut short leaves whole seeds."""
-    groups = list(specs.values())
-    return [group[i] for i in range(max(map(len, groups), default=0)) for group in groups if i < len(group)]
 
 
 def _read_selected(out: Path) -> dict | None:

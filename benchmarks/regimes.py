@@ -15,9 +15,15 @@ finished runs and resumes interrupted ones):
   ten tasks with the lowest success (``<out>/screening.json``), refused once comparison runs started.
 * ``r2``: the pairs on the screened tasks (``<out>/r2_started.json`` records the list they use).
 * ``r3``: the pairs on MT50 with 50 demonstrations per task, about 20 passes over the data.
+* ``r4``, ``r5``: the chunked-heads regimes, R3's data, schedule and evaluation with the ``act`` (R4) and
+  ``flow`` (R5) heads, three arms per seed (:data:`ARMS`: ``uniform``, ``tar``, ``tar_gentle``), seed by seed.
+  The plan's digest is recorded when its first run starts (``<out>/chunked_started.json``); a changed plan is
+  refused by these commands and by ``table``.
 * ``table``: the decision table, the per-group rows and Fig. 3 per regime from the finished runs
-  (``decision.md``, ``decision.csv``, ``groups.csv``, ``fig3_regimes.png``; provenance in
-  ``provenance.json``). Pairs trained at different commits or on different machines are refused.
+  (``decision.md``, ``decision.csv``, ``groups.csv``, ``fig3_regimes.png``, ``fig3_chunked.png``; provenance in
+  ``provenance.json``). Pairs (a chunked-heads seed's three runs) trained at different commits or on different
+  machines are refused; a chunked-heads regime is tabled over the seeds every arm has finished, and with
+  ``--complete`` a missing run of its plan is refused, named.
 * ``collect --from DIR``: copy the finished runs of a runs folder (e.g. a sweep trained in a separate
   worktree) into ``<out>/runs``: config, summary and the logs (compressed), never checkpoints except
   the pretrained source's, which the R1 runs start from.
@@ -48,10 +54,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_experiments.py
 from paper_analysis import fmt_p as _fmt_p
 from paper_experiments import EIGHT_TASKS, Planner, Scale, Spec, execute, provenance
 
-COMMANDS = ("r1", "r2-screen", "r2", "r3", "table", "collect")
+COMMANDS = ("r1", "r2-screen", "r2", "r3", "r4", "r5", "table", "collect")
 BASELINE, TREATMENT = "uniform", "tar"
 REGIMES = ("R1", "R1-10", "R2", "R3")
 PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
+# The chunked-heads regimes' arms (objective options): uniform, TAR at tar-rl's defaults, the gentle preset. Their
+# four TAR-vs-uniform comparisons (R4, R5 x tar, tar_gentle) are a second Holm family.
+ARMS = ("uniform", "tar", "tar_gentle")
+CHUNKED_STARTED_FILE = "chunked_started.json"
 # MT50 without the default eight tasks, in MetaWorld's alphabetical order: R1's pretraining tasks.
 SOURCE_TASKS = (
     "bin-picking,box-close,button-press-topdown-wall,button-press,button-press-wall,coffee-button,coffee-pull,"
@@ -80,6 +90,9 @@ class Study:
         screen_keep: tasks R2 keeps.
         r2: R2's runs (without the tasks, seed and objective).
         r3: R3's runs (without seed and objective).
+        chunked: the chunked-heads regimes' runs (R3's data, schedule and evaluation; without the head, seed and
+            objective).
+        chunked_heads: ``(regime, head, overrides of the head)`` for each chunked-heads regime (R4, R5).
     """
 
     scale: Scale
@@ -90,6 +103,8 @@ class Study:
     screen_keep: int
     r2: tuple[str, ...]
     r3: tuple[str, ...]
+    chunked: tuple[str, ...] = ()
+    chunked_heads: tuple[tuple[str, str, tuple[str, ...]], ...] = ()
 
 
 _COMMON = ("logging=quiet", "logging.record_episodes=3", "threads=1")
@@ -157,13 +172,23 @@ _CPU = Study(
         "eval.seed=1000",
         "logging.record_weights_at=[1872,-1]",
     ),
+    chunked=(
+        "data.tasks=[mt50]",
+        "data.n_demos=50",
+        "data.seed=0",
+        "optim.steps=3743",  # R3's schedule
+        "eval.rollouts=20",
+        "eval.seed=1000",
+        "logging.record_weights_at=[1872,-1]",
+        "policy.compile=true",  # the compiled attention: the same model, faster steps (tar_rl.policies.attention)
+    ),
+    chunked_heads=(("R4", "act", ()), ("R5", "flow", ())),  # each head at its defaults
 )
 _TINY = (
     "data.n_demos=2",
     "data.batch_segments=4",
     "data.slice_len=8",
     "data.workers=1",
-    "policy.hidden=[16,16]",
     "optim.steps=4",
     "optim.warmup=1",
     "eval.rollouts=1",
@@ -186,6 +211,7 @@ _CI = Study(
     ),
     source=(
         "policy=mlp",
+        "policy.hidden=[16,16]",
         "policy.task_conditioning=instruction",
         "objective=uniform",
         "seed=0",
@@ -193,10 +219,17 @@ _CI = Study(
         "data.seed=3000",
         "eval.seed=2000",
     ),
-    r1=("policy=mlp", "policy.task_conditioning=instruction", "data.tasks=[reach,basketball]", "eval.seed=1000"),
+    r1=(
+        "policy=mlp",
+        "policy.hidden=[16,16]",
+        "policy.task_conditioning=instruction",
+        "data.tasks=[reach,basketball]",
+        "eval.seed=1000",
+    ),
     r1_budgets=(1, 2),
     screen=(
         "policy=mlp",
+        "policy.hidden=[16,16]",
         "objective=uniform",
         "seed=0",
         "data.tasks=[reach,basketball,push]",
@@ -204,8 +237,13 @@ _CI = Study(
         "eval.rollouts=2",
     ),
     screen_keep=2,
-    r2=("policy=mlp", "eval.seed=1000"),
-    r3=("policy=mlp", "data.tasks=[reach,push]", "eval.seed=1000"),
+    r2=("policy=mlp", "policy.hidden=[16,16]", "eval.seed=1000"),
+    r3=("policy=mlp", "policy.hidden=[16,16]", "data.tasks=[reach,push]", "eval.seed=1000"),
+    chunked=("data.tasks=[reach,push]", "eval.seed=1000"),
+    chunked_heads=(
+        ("R4", "act", ("policy.dim=16", "policy.heads=2", "policy.ffn_dim=16", "policy.latent_dim=4")),
+        ("R5", "flow", ("policy.dim=16", "policy.heads=2", "policy.layers=1", "policy.expert_dim=8")),
+    ),
 )
 STUDIES = {"cpu": _CPU, "ci": _CI}
 
@@ -242,6 +280,55 @@ def r2_specs(study: Study, planner: Planner, tasks: Sequence[str]) -> list[Spec]
 
 def r3_specs(study: Study, planner: Planner) -> list[Spec]:
     return _pairs(planner, planner.scale.seeds, *study.r3)
+
+
+def chunked_head(study: Study, label: str) -> tuple[str, tuple[str, ...]]:
+    """The head and its overrides of the chunked-heads regime ``label`` (``R4``, ``R5``)."""
+    for regime, head, extra in study.chunked_heads:
+        if regime == label:
+            return head, extra
+    raise SystemExit(f"regimes: no chunked-heads regime {label!r} at this scale")
+
+
+def chunked_specs(study: Study, planner: Planner, label: str) -> dict[str, list[Spec]]:
+    """The runs of a chunked-heads regime per arm (:data:`ARMS`), seeds in order."""
+    head, extra = chunked_head(study, label)
+    seeds = planner.scale.seeds
+    return {
+        arm: [planner.spec(f"policy={head}", *extra, *study.chunked, f"seed={s}", f"objective={arm}") for s in seeds]
+        for arm in ARMS
+    }
+
+
+def seed_major(specs: dict[str, list[Spec]]) -> list[Spec]:
+    """Seed by seed (every setting of the first seed, then the next), so a sweep cut short leaves whole seeds."""
+    groups = list(specs.values())
+    return [group[i] for i in range(max(map(len, groups), default=0)) for group in groups if i < len(group)]
+
+
+def plan_digest(specs: dict[str, list[Spec]]) -> str:
+    """A digest of what the runs of a plan train (their overrides, without the machine's folders)."""
+    local = ("runs_root=", "data.root=")
+    plan = {arm: [[o for o in s.overrides if not o.startswith(local)] for s in group] for arm, group in specs.items()}
+    return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def check_plan_started(out: Path, label: str, specs: dict[str, list[Spec]], record: bool) -> None:
+    """Refuse a chunked-heads plan that differs from the one its runs started with (``chunked_started.json``);
+    with ``record``, record the plan when it is the regime's first."""
+    from tar_rl.io import write_json_atomic
+
+    path = out / CHUNKED_STARTED_FILE
+    started = json.loads(path.read_text()) if path.is_file() else {}
+    digest = plan_digest(specs)
+    if label in started and started[label] != digest:
+        raise SystemExit(
+            f"regimes: {label}'s plan changed after its runs started (recorded {started[label]} in {path}, now "
+            f"{digest}); a plan may not change once its runs started: restore it, or remove {label}'s runs and its "
+            "entry there"
+        )
+    if record and label not in started:
+        write_json_atomic({**started, label: digest}, path)
 
 
 def _digest(tasks: Sequence[str]) -> str:
@@ -310,6 +397,10 @@ def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[s
     """Copy the finished runs of ``src`` into ``out/runs`` (logs gzip-compressed; checkpoints only for
     the run names in ``keep_checkpoint``); returns the names copied. Runs already there are skipped.
 
+    ``weights.csv`` (TAR's weights along training demonstrations, the largest file of a run) is kept for
+    seed 0 only, the run an analysis of weights reads; every run's summary and ``metrics.csv`` keep its
+    weight statistics (largest weight, ESS).
+
     Each copy is named by its identity as this code computes it from the run's config (a run trained
     by code that named runs otherwise gets its current name; its summary's ``run_name`` follows)."""
     import yaml
@@ -332,6 +423,8 @@ def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[s
         shutil.copy2(run / runs.CONFIG_FILE, tmp / runs.CONFIG_FILE)
         write_json_atomic({**summary, "run_name": name}, tmp / runs.SUMMARY_FILE)
         for log in PACKED:
+            if log == runs.WEIGHTS_FILE and summary.get("seed", 0) != 0:
+                continue
             if (run / log).is_file():
                 with open(run / log, "rb") as f_in, gzip.GzipFile(tmp / f"{log}.gz", "wb", mtime=0) as f_out:
                     shutil.copyfileobj(f_in, f_out)
@@ -499,7 +592,9 @@ def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[
     out = ["# Where does TAR help? Decision table", "", *lines, ""]
     out += [
         "Success, Fast20 and NEPS in 100 x units; Δ = TAR - uniform over paired seeds (lower Fast20/NEPS is better). "
-        "Holm: over the primary comparisons (" + ", ".join(PRIMARY) + "). MDE: the smallest true Δ success a paired "
+        "Holm: over the primary comparisons (" + ", ".join(PRIMARY) + "), and separately over the chunked heads' "
+        "four (R4 and R5, each arm against uniform; the row names the arm: `tar` at tar-rl's defaults, "
+        "`tar_gentle` the gentle preset). MDE: the smallest true Δ success a paired "
         "t-test detects with 80% power at the observed spread. Alignment: Spearman correlation over ten bins of "
         "episode time between TAR's weight on training demonstrations and the held-out per-step loss.",
         "",
@@ -537,9 +632,73 @@ def planned(study: Study, planner: Planner, out: Path) -> dict[str, list[Spec]]:
     return plans
 
 
-def write_tables(study: Study, planner: Planner, out: Path, prov: dict, dest: Path | None = None) -> str:
-    """The decision table (markdown + CSV), per-group CSV and Fig. 3 per regime from the finished runs of
-    ``out``, written into ``dest`` (default ``out``); returns the markdown."""
+def chunked_loaded(study: Study, planner: Planner, out: Path, label: str, complete: bool) -> tuple[dict, list[str]]:
+    """The finished runs of a chunked-heads regime per arm, over the seeds every arm has finished, and the
+    names of its runs not finished.
+
+    Raises:
+        SystemExit: the plan changed after its runs started; with ``complete``, an arm misses a seed (the
+            runs named); a seed's runs trained at different commits or machines (:func:`check_pairs`).
+    """
+    from tar_rl.report import load_run
+
+    specs = chunked_specs(study, planner, label)
+    check_plan_started(out, label, specs, record=False)
+    missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
+    if complete and missing:
+        raise SystemExit(f"regimes: {label} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
+    done = {arm: {s.config["seed"]: s for s in group if s.finished} for arm, group in specs.items()}
+    seeds = sorted(set.intersection(*(set(d) for d in done.values())))
+    loaded = {arm: [load_run(done[arm][seed].run_dir) for seed in seeds] for arm in ARMS}
+    if seeds:
+        check_pairs([run for group in loaded.values() for run in group])
+    return loaded, missing
+
+
+def chunked_tables(study: Study, planner: Planner, out: Path, complete: bool) -> tuple[list, list, list, list, dict]:
+    """Decision rows (one per regime and TAR arm, Holm over all of them), per-group rows, fit rows, the
+    figure's compare rows and the missing runs of the chunked-heads regimes."""
+    from tar_rl.report import compare, holm
+
+    rows, groups, fits, figure, missing = [], [], [], [], {}
+    for label, head, _ in study.chunked_heads:
+        loaded, missing[label] = chunked_loaded(study, planner, out, label, complete)
+        if not loaded[BASELINE]:
+            continue
+        for arm in ARMS:
+            fits.append({"regime": label, "head": head, "arm": arm, **fit_summary(loaded[arm])})
+            table = compare(loaded[arm], file=io.StringIO())
+            figure.append(table.assign(policy=f"{label} {head}", objective=arm))
+        for arm in ARMS[1:]:
+            row, group = regime_rows(f"{label} {arm}", [*loaded[BASELINE], *loaded[arm]])
+            rows.append(row)
+            groups.append(group)
+    for row, p in zip(rows, holm([r["p_success"] for r in rows])):
+        row["holm_p"] = p
+    return rows, groups, fits, figure, missing
+
+
+def chunked_markdown(fits: Sequence[dict]) -> str:
+    """The chunked heads' fit diagnostics and weight statistics per regime and arm."""
+    if not fits:
+        return ""
+    lines = ["", "## Chunked heads: fit and weights", ""]
+    lines += fit_markdown(pd.DataFrame(fits), ["regime", "head", "arm"])
+    lines += [
+        "",
+        "Means over the paired seeds; largest weight and ESS (fraction of valid steps) over the last "
+        f"{FINAL_SHARE:.0%} of training steps (a uniform run's weights are all 1).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def write_tables(
+    study: Study, planner: Planner, out: Path, prov: dict, dest: Path | None = None, complete: bool = False
+) -> str:
+    """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head from the
+    finished runs of ``out``, written into ``dest`` (default ``out``); returns the markdown.
+
+    ``complete``: refuse a chunked-heads regime with a run of its plan missing (the final table)."""
     dest = out if dest is None else dest
     from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
     from tar_rl.report import compare, holm, load_run, plot_success_vs_neps
@@ -570,8 +729,11 @@ def write_tables(study: Study, planner: Planner, out: Path, prov: dict, dest: Pa
         r["holm_p"] = math.nan
     for i, p in zip(primary, adjusted):
         rows[i]["holm_p"] = p
+    c_rows, c_groups, c_fits, c_figure, c_missing = chunked_tables(study, planner, out, complete)
+    rows, groups = rows + c_rows, groups + c_groups
+    missing.update(c_missing)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
-    md = decision_markdown(rows, group_df, missing)
+    md = decision_markdown(rows, group_df, missing) + chunked_markdown(c_fits)
     atomic_write(dest / "decision.md", lambda f: f.write(md))
     write_csv_atomic(pd.DataFrame(rows).round(6), dest / "decision.csv")
     if len(group_df):
@@ -580,6 +742,10 @@ def write_tables(study: Study, planner: Planner, out: Path, prov: dict, dest: Pa
     if figure:
         fig_table = pd.concat(figure, ignore_index=True)
         plot_success_vs_neps(fig_table, dest / "fig3_regimes.png", caption="regimes as families: uniform -> TAR")
+    if c_figure:
+        fig_table = pd.concat(c_figure, ignore_index=True)
+        caption = "chunked heads (R4 act, R5 flow): uniform -> tar, tar_gentle"
+        plot_success_vs_neps(fig_table, dest / "fig3_chunked.png", caption=caption)
     return md
 
 
@@ -644,6 +810,9 @@ def _parser() -> argparse.ArgumentParser:
         "regimes.py", "The pre-registered regime study: runs and tables.", COMMANDS, "benchmarks/results/regimes"
     )
     p.add_argument("--budgets", type=_ints, default=None, help="r1: only these demonstration budgets")
+    p.add_argument(
+        "--complete", action="store_true", help="table: refuse a chunked-heads regime with a run of its plan missing"
+    )
     return p
 
 
@@ -684,8 +853,13 @@ def main(argv: list[str] | None = None) -> int:
         failed += execute(study.scale, specs, jobs, args.dry_run, logs)
     elif args.command == "r3":
         failed += execute(study.scale, r3_specs(study, planner), jobs, args.dry_run, logs)
+    elif args.command in ("r4", "r5"):
+        specs = chunked_specs(study, planner, args.command.upper())
+        check_plan_started(out, args.command.upper(), specs, record=not args.dry_run)
+        failed += execute(study.scale, seed_major(specs), jobs, args.dry_run, logs)
     elif args.command == "table":
-        print(write_tables(study, planner, out, provenance(study.scale, argv, "regimes.py"), tables_dir(args, out)))
+        prov = provenance(study.scale, argv, "regimes.py")
+        print(write_tables(study, planner, out, prov, tables_dir(args, out), complete=args.complete))
     return exit_code(failed)
 
 
