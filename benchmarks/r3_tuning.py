@@ -18,7 +18,7 @@ runs and resumes interrupted ones):
 * ``table [--tables DIR]``: ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on
   the tuning seed, per seed, with its fit and weight statistics and their rank correlations with the difference)
   and, once final runs finished, ``final.md``/``final.csv`` (paired comparisons to uniform with Holm over the
-  two, and the MDE; at the cpu scale also the paper's defaults as R3 compared them, from the regime study's
+  two, and the MDE; at the cpu scale also tar-rl's defaults as R3 compared them, from the regime study's
   ``decision.csv``, and how many final uniform runs reproduce R3's committed ones), all recomputed from the runs
   and written into ``<out>`` or ``DIR``.
 * ``collect --from DIR``: copy the finished runs of a runs folder into ``<out>/runs`` (config, summary,
@@ -61,7 +61,7 @@ from regimes import (
 COMMANDS = ("tune", "select", "final", "table", "collect")
 BASELINE = "uniform"
 VARIANTS = ("tar_arm", "tar_dimnorm")  # in the order the plan lists them (a tie goes to the first)
-PAPER = {"gamma": 1.0, "cap": "paper", "w_max": 3.0}  # the paper's defaults
+DEFAULTS = {"gamma": 1.0, "cap": "paper", "w_max": 3.0}  # tar-rl's defaults (the paper publishes no values)
 TIE = 0.25  # points of success within which two settings tie (the plan's rule)
 SELECTED_FILE = "selected.json"
 
@@ -158,7 +158,7 @@ def final_specs(planner: Planner, tuning: Tuning, selected: dict) -> dict[str, l
 
 
 def distance(name: str) -> tuple[int, float]:
-    """How far a TAR cell lies from the paper's defaults: (settings changed, size of the change).
+    """How far a TAR cell lies from tar-rl's defaults: (settings changed, size of the change).
 
     The size adds ``|log2|`` of gamma's and w_max's ratios to the defaults and 1 for the exact cap, so
     that gamma 0.5 is a smaller change than gamma 0.25 and one changed setting is nearer than two.
@@ -166,9 +166,9 @@ def distance(name: str) -> tuple[int, float]:
     _, g, cap, w = name.split("-")
     gamma, w_max = float(g[1:]), float(w[1:])
     changes = [
-        abs(math.log2(gamma / PAPER["gamma"])),
-        float(cap != PAPER["cap"]),
-        abs(math.log2(w_max / PAPER["w_max"])),
+        abs(math.log2(gamma / DEFAULTS["gamma"])),
+        float(cap != DEFAULTS["cap"]),
+        abs(math.log2(w_max / DEFAULTS["w_max"])),
     ]
     return sum(c > 0 for c in changes), sum(changes)
 
@@ -305,7 +305,7 @@ def fit_section(deltas: pd.DataFrame, loaded: dict[str, list]) -> tuple[list[str
 
 
 def paper_reference(decision_csv: Path) -> dict | None:
-    """R3's comparison of the paper's defaults with uniform (the ``R3`` row of the regime study's
+    """R3's comparison of tar-rl's defaults with uniform (the ``R3`` row of the regime study's
     ``decision.csv``) as a row of :func:`final_table`; ``None`` without that file or row."""
     if not decision_csv.is_file():
         return None
@@ -314,8 +314,8 @@ def paper_reference(decision_csv: Path) -> dict | None:
         return None
     r = rows.loc["R3"]
     return {
-        "role": "paper defaults (R3)",
-        "setting": cell_name(PAPER["gamma"], PAPER["cap"], PAPER["w_max"]),
+        "role": "tar-rl defaults (R3)",
+        "setting": cell_name(DEFAULTS["gamma"], DEFAULTS["cap"], DEFAULTS["w_max"]),
         "pairs": int(r["pairs"]),
         "uniform": r["success_uniform"],
         "setting_success": r["success_tar"],
@@ -329,7 +329,7 @@ def paper_reference(decision_csv: Path) -> dict | None:
 
 def uniform_reproduced(final_uniform: Sequence[Path], r3_runs: Path) -> tuple[int, int]:
     """How many of the final uniform runs give the same final rollouts as R3's committed run of the same name
-    (under ``r3_runs``), of how many have one: the runs the paper's defaults were compared with in R3."""
+    (under ``r3_runs``), of how many have one: the runs tar-rl's defaults were compared with in R3."""
     pairs = [(run, r3_runs / run.name) for run in final_uniform if (r3_runs / run.name).is_dir()]
     return sum(reproduces(run, committed)[0] for run, committed in pairs), len(pairs)
 
@@ -339,7 +339,7 @@ def final_table(
 ) -> tuple[str, pd.DataFrame]:
     """The selected cell and variant against uniform on the final seeds: paired t, Holm over the two, MDE.
 
-    ``reference`` (:func:`paper_reference`) adds the paper's defaults as R3 measured them, outside the Holm
+    ``reference`` (:func:`paper_reference`) adds tar-rl's defaults as R3 measured them, outside the Holm
     correction; ``reproduced`` (:func:`uniform_reproduced`) says whether R3's uniform runs are the final ones.
     """
     from tar_rl.report import holm, min_detectable_effect, paired_table
@@ -384,7 +384,10 @@ def final_table(
         "seeds (95% CI, paired t-test); Holm over the cell and the variant."
     ]
     if reference is not None:
-        notes.append("The paper's defaults: R3's own comparison (the regime study), not part of the correction.")
+        notes.append(
+            "tar-rl's defaults (gamma 1, w_max 3, paper cap): R3's own comparison (the regime study), not part of "
+            "the correction."
+        )
     if reproduced is not None:
         notes.append(
             f"Uniform's final runs give the same rollouts as R3's committed uniform runs in {reproduced[0]} of "

@@ -160,7 +160,7 @@ def test_the_final_table_by_hand(tuning, tmp_path):
     reference = tuning.paper_reference(decision)
     md, df = tuning.final_table(loaded, selected, reference, (3, 4))
     rows = df.set_index("role")
-    cell, variant, paper = rows.loc["cell"], rows.loc["variant"], rows.loc["paper defaults (R3)"]
+    cell, variant, paper = rows.loc["cell"], rows.loc["variant"], rows.loc["tar-rl defaults (R3)"]
     assert (cell.uniform, cell.setting_success, cell.delta) == pytest.approx((50.0, 75.0, 25.0))
     # n = 2: t = 25 / (17.678 / sqrt 2) = 2 with 1 df, p = 1 - 2 atan(2) / pi; the CI is 25 +- t_.975,1 x 12.5
     assert cell.p == pytest.approx(1 - 2 * math.atan(2) / math.pi, abs=1e-6)
@@ -170,7 +170,8 @@ def test_the_final_table_by_hand(tuning, tmp_path):
     assert (cell.holm_p, variant.holm_p) == pytest.approx((2 * cell.p, 1.0))  # Holm over the two only
     assert paper.setting == "tar-g1-paper-w3" and (paper.delta, paper.pairs, paper.mde) == (-2.05, 8, 2.9)
     assert math.isnan(paper.holm_p)
-    assert "| paper defaults (R3) | tar-g1-paper-w3 | 8 | 88.9 / 86.9 | -2.05 [-4.17, +0.07] | 0.056 | - | 2.90 |" in md
+    row = "| tar-rl defaults (R3) | tar-g1-paper-w3 | 8 | 88.9 / 86.9 | -2.05 [-4.17, +0.07] | 0.056 | - | 2.90 |"
+    assert row in md
     assert "in 3 of 4 seeds" in md
     assert tuning.paper_reference(tmp_path / "none.csv") is None
     pd.DataFrame([{"regime": "R1", "pairs": 8}]).to_csv(decision, index=False)
