@@ -218,6 +218,96 @@ def test_a_changed_screening_list_is_refused_once_comparisons_started(study, tmp
         regimes.write_screening(regimes.STUDIES["ci"], SimpleNamespace(run_dir=_screen_dir(out)), copy)
 
 
+# -- The chunked-heads regimes (R4, R5) ------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def chunked(tmp_path_factory, data_root):
+    """R4 and R5 at the ci scale, seed 0 (three arms each), and their table."""
+    regimes = _load()
+    out = tmp_path_factory.mktemp("chunked")
+    for command in ("r4", "r5", "table"):
+        args = [command, "--scale", "ci", "--out", str(out), "--data-root", str(data_root), "--seeds", "0"]
+        assert regimes.main(args) == 0, command
+    return regimes, out, data_root
+
+
+@pytest.mark.slow
+def test_chunked_regimes_run_at_the_ci_scale_three_arms_a_seed(chunked):
+    _, out, _ = chunked
+    runs = _summaries(out)
+    assert len(runs) == 2 * 3
+    for head in ("act", "flow"):
+        mine = [s for s in runs.values() if s["policy"] == head]
+        objectives = sorted(
+            (s["config"]["objective"]["gamma"], s["config"]["objective"]["cap"], s["objective"]) for s in mine
+        )
+        # uniform, tar at tar-rl's defaults and the gentle preset (a tar run at gamma 0.5, exact cap, w_max 1.5)
+        assert objectives == [(0.5, "exact", "tar"), (1.0, "paper", "tar"), (1.0, "paper", "uniform")]
+        configs = [{k: v for k, v in s["config"].items() if k not in ("objective", "run_dir")} for s in mine]
+        assert all(c == configs[0] for c in configs)  # the arms of a seed differ only in the objective
+    md = (out / "decision.md").read_text()
+    for row in ("| R4 tar |", "| R4 tar_gentle |", "| R5 tar |", "| R5 tar_gentle |", "| R4 | act | tar_gentle |"):
+        assert row in md
+    assert (out / "fig3_chunked.png").read_bytes()[:4] == b"\x89PNG"
+    assert set(json.loads((out / "chunked_started.json").read_text())) == {"R4", "R5"}
+
+
+@pytest.mark.slow
+def test_a_changed_chunked_plan_is_refused_by_the_run_and_table_commands(chunked, tmp_path):
+    regimes, out, data_root = chunked
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("checkpoint.pt"))
+    started = json.loads((copy / "chunked_started.json").read_text())
+    (copy / "chunked_started.json").write_text(json.dumps({**started, "R4": "0123456789abcdef"}))
+    common = ["--scale", "ci", "--out", str(copy), "--data-root", str(data_root), "--seeds", "0"]
+    for command in ("r4", "table"):
+        with pytest.raises(SystemExit, match="R4's plan changed after its runs started"):
+            regimes.main([command, *common])
+    regimes.main(["r5", *common, "--dry-run"])  # R5's plan is unchanged
+
+
+@pytest.mark.slow
+def test_an_arm_missing_a_seed_is_left_out_and_refused_by_the_complete_table(chunked, tmp_path):
+    regimes, out, data_root = chunked
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("checkpoint.pt"))
+    gentle = next(
+        n for n, s in _summaries(copy).items() if s["policy"] == "flow" and s["config"]["objective"]["cap"] == "exact"
+    )
+    shutil.rmtree(copy / "runs" / gentle)
+    common = ["--scale", "ci", "--out", str(copy), "--data-root", str(data_root), "--seeds", "0"]
+    with pytest.raises(SystemExit, match=f"R5 misses 1 run\\(s\\) of its plan: {gentle}"):
+        regimes.main(["table", *common, "--complete"])
+    assert regimes.main(["table", *common]) == 0
+    md = (copy / "decision.md").read_text()
+    assert "| R4 tar_gentle |" in md and "| R5 tar" not in md  # R5 has no seed with all three arms
+    assert f"- R5: 1 run(s) ({gentle})" in md
+
+
+def test_collect_keeps_the_weights_of_seed_0_only(tmp_path):
+    regimes = _load()
+    src = tmp_path / "src"
+    for seed in (0, 1):
+        run = src / f"run{seed}"
+        run.mkdir(parents=True)
+        config = {"objective": {"name": "uniform"}, "policy": {"name": "mlp"}, "seed": seed}
+        config |= {"data": {"root": str(tmp_path / "data")}, "runs_root": str(src)}  # this machine's folders
+        (run / "config.yaml").write_text(json.dumps(config))
+        (run / "summary.json").write_text(json.dumps({"finished": True, "seed": seed, "config": config}))
+        for name in ("eval_rollouts.csv", "metrics.csv", "weights.csv"):
+            (run / name).write_text("a\n1\n")
+    names = regimes.collect(src, tmp_path / "out")
+    by_seed = {json.loads((tmp_path / "out" / "runs" / n / "summary.json").read_text())["seed"]: n for n in names}
+    kept = {seed: sorted(p.name for p in (tmp_path / "out" / "runs" / n).iterdir()) for seed, n in by_seed.items()}
+    assert "weights.csv.gz" in kept[0] and "weights.csv.gz" not in kept[1]
+    assert "metrics.csv.gz" in kept[1] and "eval_rollouts.csv.gz" in kept[1]
+    for name in names:  # the copies name the default job's relative folders, not this machine's
+        folder = tmp_path / "out" / "runs" / name
+        for text in ((folder / "config.yaml").read_text(), (folder / "summary.json").read_text()):
+            assert str(tmp_path) not in text and "datasets" in text and "runs" in text
+
+
 def _screen_dir(out: Path) -> Path:
     for name, s in _summaries(out).items():
         if s["config"]["eval"]["seed"] == 2000 and s["config"]["data"]["seed"] == 0:

@@ -27,7 +27,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
-from tar_rl import TARLoss
+from tar_rl import TARLoss, tar_weights
 from tar_rl.cli import main as cli_main
 from tar_rl.data import SegmentSampler
 from tar_rl.objectives import WEIGHTINGS
@@ -111,6 +111,24 @@ def test_objective_override_sets_the_weighting_and_its_parameters():
     assert config["objective"]["name"] == "uniform"
     config = compose_config("objective=tar", "objective.gamma=2", "objective.cap=exact")
     assert (config["objective"]["gamma"], config["objective"]["cap"]) == (2.0, "exact")
+
+
+def test_tar_gentle_preset_resolves_to_its_values_and_weights():
+    config = compose_config("objective=tar_gentle")
+    default = compose_config("objective=tar")["objective"]
+    expected = {**default, "gamma": 0.5, "cap": "exact", "w_max": 1.5}  # R3's tuned setting, the rest tar's
+    assert config["objective"] == expected
+    validate(config)
+    cfg = typed_config(config)
+    params = make_objective(
+        cfg.objective, cfg.optim.steps, cfg.seed, make_policy(cfg.policy, DataInfo())
+    ).weighting_params
+    assert (params.gamma, params.cap, params.w_max) == (0.5, "exact", 1.5)
+    # One step at 9 among three at 1: at gamma 0.5 its uncapped weight is ~1.9-2.1 (z-score 1.5-1.7), above 1.5;
+    # the exact cap holds it at 1.5 and the three others share the rest of the unit mean, (4 - 1.5) / 3 each.
+    losses, valid = torch.tensor([[1.0, 1.0, 1.0, 9.0]]), torch.ones(1, 4, dtype=torch.bool)
+    weights = tar_weights(losses, valid, gamma=params.gamma, w_max=params.w_max, cap=params.cap)
+    torch.testing.assert_close(weights[0], torch.tensor([2.5 / 3, 2.5 / 3, 2.5 / 3, 1.5]))
 
 
 def test_schedule_fractions_become_steps():
