@@ -12,7 +12,7 @@ from typing import Any
 
 from tar_rl.collectors.suites import SUITES, Suite, suite_for
 from tar_rl.data import DemoDataset
-from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, WeightingParams
+from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, WeightingParams, check_gripper_dims
 from tar_rl.policies import DataInfo, Policy
 
 from . import diagnose, post_training
@@ -20,7 +20,14 @@ from .builders import given_dataset, make_objective, make_policy, torch_device
 from .config import ObjectiveConfig, OptimConfig, TrainConfig, typed_config
 from .errors import ConfigError
 
-__all__ = ["Job", "resolve_config", "validate"]
+__all__ = ["MAX_LR", "MAX_STEPS", "Job", "resolve_config", "validate"]
+
+#: The most optimiser steps a job may ask for (the paper trains 100K; a billion steps of the smallest head take
+#: weeks on a GPU): a larger count is a typo, refused before work rather than found out days later.
+MAX_STEPS = 1_000_000_000
+#: The largest peak learning rate: AdamW moves each weight by about ``lr`` per step, so a larger one makes
+#: the weights of these heads (of order 1) meaningless at the first step.
+MAX_LR = 1.0
 
 
 def resolve_config(cfg: Any) -> dict:
@@ -108,11 +115,17 @@ def validate(config: dict) -> Job:
                 chunk_horizon=cfg.data.chunk_horizon,
                 history=cfg.data.history,
                 image_size=cfg.data.image_size,
+                **({"action_dim": suite.action_dim} if suite.action_dim else {}),
             )
         policy = make_policy(cfg.policy, placeholder)
         make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
+    if cfg.objective.name == "tar_arm":  # the weighting that reads gripper_dims, indices into the action dims
+        try:
+            check_gripper_dims(tuple(cfg.objective.gripper_dims), placeholder.action_dim)
+        except ValueError as err:
+            raise ConfigError(f"objective.{err}") from None
     _check_init(cfg, policy, placeholder)
     return Job(cfg, **tasks)
 
@@ -122,9 +135,19 @@ def _check_objective(obj: ObjectiveConfig) -> None:
     _check_choice("objective.cap", obj.cap, ["paper", "exact"])
     _check_choice("objective.shape", obj.shape, ["linear", "cosine"])
     _check_choice("objective.compile", obj.compile, list(COMPILE_MODES))
-    for key, value in (("start", obj.start), ("ramp", obj.ramp)):
-        if not 0 <= value <= 1:
-            raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {value}")
+    if not 0 <= obj.start < 1:
+        never = " (the weighting would start after the last step: TAR would never reach full strength)"
+        raise ConfigError(
+            f"objective.start is a fraction of optim.steps and must lie in [0, 1), got {obj.start}"
+            + (never if obj.start >= 1 else "")
+        )
+    if not 0 <= obj.ramp <= 1:
+        raise ConfigError(f"objective.ramp is a fraction of optim.steps and must lie in [0, 1], got {obj.ramp}")
+    if obj.start + obj.ramp > 1 + 1e-9:
+        raise ConfigError(
+            f"objective.start + objective.ramp must be <= 1 (the ramp ends by the last step), got {obj.start} + "
+            f"{obj.ramp} = {obj.start + obj.ramp:g}: TAR would never reach full strength; lower one of them"
+        )
     _check_objective_numbers(obj)
 
 
@@ -173,7 +196,6 @@ def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:
         ("data.image_size", data.image_size, 0),
         ("eval.rollouts", ev.rollouts, 0),
         ("eval.every", ev.every, 0),
-        ("optim.steps", opt.steps, 1),
         ("optim.warmup", opt.warmup, 0),
         ("optim.skip_nonfinite", opt.skip_nonfinite, 0),
         ("logging.every", log.every, 1),
@@ -181,6 +203,7 @@ def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:
         ("logging.record_episodes", log.record_episodes, 1),
     ):
         _check_int(name, value, low)
+    _check_int("optim.steps", opt.steps, 1, MAX_STEPS)
     _check_int("eval.horizon", ev.horizon, 1, suite.max_horizon if suite is not None else None)
     _check_int("threads", cfg.threads, 0)
     for name, value in (("data.workers", data.workers), ("eval.workers", ev.workers)):
@@ -193,8 +216,8 @@ def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:
 
 
 def _check_optim(opt: OptimConfig) -> None:
-    if not (opt.lr > 0 and math.isfinite(opt.lr)):
-        raise ConfigError(f"optim.lr must be a positive number, got {opt.lr}")
+    if not 0 < opt.lr <= MAX_LR:
+        raise ConfigError(f"optim.lr must be a number in (0, {MAX_LR:g}], got {opt.lr}")
     _check_choice("optim.decay", opt.decay, ["cosine", "constant"])
     if not 0 <= opt.min_lr_ratio <= 1:
         raise ConfigError(f"optim.min_lr_ratio must lie in [0, 1], got {opt.min_lr_ratio}")
@@ -279,8 +302,13 @@ def _check_objective_numbers(obj: ObjectiveConfig) -> None:
         "dro_eta",
         "dro_bins",
     )
-    try:  # the baselines' rules live in WeightingParams; its message names the parameter
-        WeightingParams(**{key: getattr(obj, key) for key in baselines}, gripper_dims=tuple(obj.gripper_dims))
+    try:  # the cap's floor and the baselines' rules live in WeightingParams; its message names the parameter
+        WeightingParams(
+            **{key: getattr(obj, key) for key in baselines},
+            w_max=obj.w_max,
+            cap=obj.cap,
+            gripper_dims=tuple(obj.gripper_dims),
+        )
     except ValueError as err:
         raise ConfigError(f"objective.{err}") from None
     if not 0 <= obj.perturb_fraction <= 1:
