@@ -20,7 +20,7 @@ from .builders import given_dataset, make_objective, make_policy, torch_device
 from .config import ObjectiveConfig, OptimConfig, TrainConfig, typed_config
 from .errors import ConfigError
 
-__all__ = ["MAX_LR", "MAX_STEPS", "Job", "resolve_config", "validate"]
+__all__ = ["INT_SETTINGS", "MAX_LR", "MAX_STEPS", "Job", "int_rule", "resolve_config", "validate"]
 
 #: The most optimiser steps a job may ask for (the paper trains 100K; a billion steps of the smallest head take
 #: weeks on a GPU): a larger count is a typo, refused before work rather than found out days later.
@@ -28,6 +28,41 @@ MAX_STEPS = 1_000_000_000
 #: The largest peak learning rate: AdamW moves each weight by about ``lr`` per step, so a larger one makes
 #: the weights of these heads (of order 1) meaningless at the first step.
 MAX_LR = 1.0
+
+#: The integer settings with fixed bounds: ``(low, high)``, ``high`` None for none (``eval.horizon``'s bound is
+#: its suite's; ``data.workers`` and ``eval.workers`` may also be null).
+INT_SETTINGS: dict[str, tuple[int, int | None]] = {
+    "seed": (0, None),
+    "threads": (0, None),
+    "data.seed": (0, None),
+    "data.n_demos": (1, None),
+    "data.slice_len": (1, None),
+    "data.batch_segments": (1, None),
+    "data.chunk_horizon": (1, None),
+    "data.history": (1, None),
+    "data.image_size": (0, None),
+    "data.workers": (0, None),
+    "eval.seed": (0, None),
+    "eval.rollouts": (0, None),
+    "eval.every": (0, None),
+    "eval.workers": (0, None),
+    "optim.steps": (1, MAX_STEPS),
+    "optim.warmup": (0, None),
+    "optim.skip_nonfinite": (0, None),
+    "logging.every": (1, None),
+    "logging.checkpoint_every": (1, None),
+    "logging.record_episodes": (1, None),
+    "diagnostics.heldout_demos": (0, None),
+    "diagnostics.heldout_seed": (0, None),
+    "diagnostics.train_episodes": (1, None),
+    "diagnostics.bins": (2, None),
+}
+_NULLABLE = ("data.workers", "eval.workers")
+
+
+def int_rule(low: int, high: int | None) -> str:
+    """What an integer setting of these bounds must be, in words (``an integer >= 0``)."""
+    return f"an integer between {low} and {high}" if high is not None else f"an integer >= {low}"
 
 
 def resolve_config(cfg: Any) -> dict:
@@ -68,8 +103,7 @@ class Job:
 def _check_int(name: str, value, low: int, high: int | None = None) -> None:
     ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
     if not ok:
-        bounds = f"between {low} and {high}" if high is not None else f">= {low}"
-        raise ConfigError(f"{name} must be an integer {bounds}, got {value!r}")
+        raise ConfigError(f"{name} must be {int_rule(low, high)}, got {value!r}")
 
 
 def _check_choice(name: str, value, choices: Sequence[str]) -> None:
@@ -183,32 +217,14 @@ def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset 
 
 
 def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:
-    data, ev, opt, log = cfg.data, cfg.eval, cfg.optim, cfg.logging
-    for name, value, low in (
-        ("seed", cfg.seed, 0),
-        ("data.seed", data.seed, 0),
-        ("eval.seed", ev.seed, 0),
-        ("data.n_demos", data.n_demos, 1),
-        ("data.slice_len", data.slice_len, 1),
-        ("data.batch_segments", data.batch_segments, 1),
-        ("data.chunk_horizon", data.chunk_horizon, 1),
-        ("data.history", data.history, 1),
-        ("data.image_size", data.image_size, 0),
-        ("eval.rollouts", ev.rollouts, 0),
-        ("eval.every", ev.every, 0),
-        ("optim.warmup", opt.warmup, 0),
-        ("optim.skip_nonfinite", opt.skip_nonfinite, 0),
-        ("logging.every", log.every, 1),
-        ("logging.checkpoint_every", log.checkpoint_every, 1),
-        ("logging.record_episodes", log.record_episodes, 1),
-    ):
-        _check_int(name, value, low)
-    _check_int("optim.steps", opt.steps, 1, MAX_STEPS)
+    ev, opt, log = cfg.eval, cfg.optim, cfg.logging
+    for name, (low, high) in INT_SETTINGS.items():
+        node = cfg
+        for part in name.split("."):
+            node = getattr(node, part)
+        if not (node is None and name in _NULLABLE):
+            _check_int(name, node, low, high)
     _check_int("eval.horizon", ev.horizon, 1, suite.max_horizon if suite is not None else None)
-    _check_int("threads", cfg.threads, 0)
-    for name, value in (("data.workers", data.workers), ("eval.workers", ev.workers)):
-        if value is not None:
-            _check_int(name, value, 0)
     for step in log.record_weights_at:
         if not (step == -1 or (isinstance(step, int) and 1 <= step <= opt.steps)):
             raise ConfigError(f"logging.record_weights_at: {step!r} is not a step in 1..{opt.steps} (or -1, the last)")
@@ -230,11 +246,7 @@ def _check_optim(opt: OptimConfig) -> None:
 
 
 def _check_diagnostics(cfg: TrainConfig) -> None:
-    diag = cfg.diagnostics
-    for name, value in (("heldout_demos", diag.heldout_demos), ("heldout_seed", diag.heldout_seed)):
-        _check_int(f"diagnostics.{name}", value, 0)
-    _check_int("diagnostics.train_episodes", diag.train_episodes, 1)
-    _check_int("diagnostics.bins", diag.bins, 2)
+    """The held-out seeds against the training and evaluation ones (the group's numbers are in :data:`INT_SETTINGS`)."""
     try:
         diagnose.check_heldout_seeds(cfg)
     except ValueError as err:

@@ -20,11 +20,14 @@ __all__ = [
     "DiskFullError",
     "RunInterrupted",
     "TarRLError",
+    "Terminated",
     "children_ignore_sigint",
     "debug_mode",
     "disk_full_cause",
     "interrupted",
     "one_line",
+    "sigterm_raises",
+    "terminated",
 ]
 
 #: The environment variable that asks for whole tracebacks (Hydra's own name for it).
@@ -71,6 +74,34 @@ class RunInterrupted(KeyboardInterrupt):
     """
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received inside :func:`sigterm_raises`: the job stops as on Ctrl-C, and the command exits 143.
+
+    A ``KeyboardInterrupt``, so everything that ends a job cleanly on Ctrl-C does so on SIGTERM too.
+    """
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated("SIGTERM")
+
+
+@contextlib.contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """Inside the block SIGTERM raises :class:`Terminated` in the main thread instead of ending the process silently.
+
+    Outside the main thread, where signal handlers cannot be set, this does nothing. Worker processes
+    start with SIGTERM's default action (they are spawned), so ending them still ends them.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
 def _chain(err: BaseException | None) -> Iterator[BaseException]:
     """``err``, then the exception it was raised from or while handling, and so on."""
     seen: set[int] = set()
@@ -97,6 +128,11 @@ def interrupted(err: BaseException) -> bool:
     then found in the context.
     """
     return any(isinstance(e, KeyboardInterrupt) for e in _chain(err))
+
+
+def terminated(err: BaseException) -> bool:
+    """Whether ``err`` is, or was raised while handling, a :class:`Terminated` (SIGTERM)."""
+    return any(isinstance(e, Terminated) for e in _chain(err))
 
 
 def debug_mode() -> bool:

@@ -66,9 +66,8 @@ class Registry(Generic[T]):
         try:
             return self._entries[name]
         except (KeyError, TypeError):
-            raise UnknownName(
-                f"unknown {self.kind} {name!r}{did_you_mean(name, self._entries)}; registered: {', '.join(self._entries)}"
-            ) from None
+            hint = did_you_mean(name, self._entries)
+            raise UnknownName(f"unknown {self.kind} {name!r}{hint}; registered: {', '.join(self._entries)}") from None
 
     def build(self, name: str, *args, **kwargs):
         """``get(name).build(*args, **kwargs)``."""
