@@ -9,6 +9,7 @@ mean 'tar'?). What it accepts, Hydra then composes as usual; ``hydra.*`` setting
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import re
 
 from tar_rl.objectives import WEIGHTINGS
@@ -49,6 +50,17 @@ def _settings() -> set[str]:
     return scalars | sections | {"init.from"}
 
 
+def _suggest(key: str, names: set[str]) -> str:
+    """The closest setting to ``key`` (`` (did you mean 'x'?)``): by its whole name, else by its last part
+    (``lr`` -> ``optim.lr``); ``""`` when none is close."""
+    hint = did_you_mean(key, names)
+    if hint:
+        return hint
+    tails = {name.rsplit(".", 1)[-1]: name for name in sorted(names)}
+    close = difflib.get_close_matches(key.rsplit(".", 1)[-1], list(tails), n=1, cutoff=0.8)
+    return f" (did you mean {tails[close[0]]!r}?)" if close else ""
+
+
 def _check_key(key: str, heads: list[str]) -> None:
     """Refuse a key that names no setting; a head's setting must be one of every head chosen (``heads``)."""
     parts = key.split(".")
@@ -57,11 +69,11 @@ def _check_key(key: str, heads: list[str]) -> None:
         for head in heads:
             known = _head_settings(head)
             if name not in known:
-                hint = did_you_mean(name, known)
-                raise ConfigError(f"{key}: the head {head!r} has no such setting{hint}; its settings: {sorted(known)}")
+                raise ConfigError(f"{key}: the head {head!r} has no such setting{_suggest(name, known)}")
         return
     if name not in _settings():
-        raise ConfigError(f"{key}: no such setting{did_you_mean(key, _settings() | set(_groups()))}")
+        known = _settings() | set(_groups()) | {name for head in heads for name in _head_settings(head)}
+        raise ConfigError(f"{key}: no such setting{_suggest(key, known)}")
 
 
 def _problem(key: str, message: str) -> str:
