@@ -16,7 +16,22 @@ from typing import IO, Any
 
 from tar_rl.errors import DiskFullError, disk_full_cause
 
-__all__ = ["atomic_write", "save_torch_atomic", "write_csv_atomic", "write_json_atomic"]
+__all__ = ["atomic_write", "check_writable", "save_torch_atomic", "write_csv_atomic", "write_json_atomic"]
+
+
+def check_writable(folder: str | os.PathLike) -> Path:
+    """Make ``folder`` (and its parents) if needed and create and remove a file in it: a folder the results of
+    some work are to be written to, checked before the work.
+
+    Raises:
+        OSError: the folder cannot be made or written to (read-only, no permission, a file in its place).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-test.", suffix=".tmp")
+    os.close(fd)
+    os.unlink(probe)
+    return folder
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[IO], object], binary: bool = False) -> Path:
