@@ -49,22 +49,23 @@ class DiskFullError(TarRLError, OSError):
     An ``OSError`` (``errno``, ``filename`` set), so code that handles failed writes still catches it.
     """
 
-    def __init__(self, path: str | os.PathLike, cause: OSError):
+    def __init__(self, path: str | os.PathLike, cause: OSError, detail: str = ""):
         super().__init__(cause.errno, os.strerror(cause.errno), str(path))
         self.path = Path(path)
+        self.detail = detail
         kind = "disk quota exceeded" if cause.errno == errno.EDQUOT else "disk full"
         #: What happened and where, without the consequence (for callers that add their own).
-        self.what = f"no space left on device while writing {self.path} ({kind})"
+        self.what = f"no space left on device while writing {self.path} ({kind}{': ' + detail if detail else ''})"
 
     def __str__(self) -> str:
         return f"{self.what}; the previous {self.path.name}, if any, is unchanged"
 
     def __reduce__(self):  # picklable (errors cross process boundaries in the evaluator and Hydra launchers)
-        return (_disk_full, (str(self.path), self.errno))
+        return (_disk_full, (str(self.path), self.errno, self.detail))
 
 
-def _disk_full(path: str, code: int) -> DiskFullError:
-    return DiskFullError(path, OSError(code, os.strerror(code)))
+def _disk_full(path: str, code: int, detail: str = "") -> DiskFullError:
+    return DiskFullError(path, OSError(code, os.strerror(code)), detail)
 
 
 class RunInterrupted(KeyboardInterrupt):
