@@ -34,6 +34,7 @@ import copy
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -283,7 +284,9 @@ class Trainer:
         if not finite:
             self.skipped += 1
             self.optimizer.zero_grad(set_to_none=True)
-            self.scheduler.step()
+            with warnings.catch_warnings():  # the schedule keeps its step count; torch warns when step 1 is skipped
+                warnings.filterwarnings("ignore", "Detected call of `lr_scheduler.step\\(\\)` before", UserWarning)
+                self.scheduler.step()
             if self.skipped > self.cfg.optim.skip_nonfinite:
                 allowed = self.cfg.optim.skip_nonfinite
                 raise TrainingError(
