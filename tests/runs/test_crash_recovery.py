@@ -69,7 +69,8 @@ def test_a_crash_before_the_summary_counts_the_final_evaluation_once(
     assert not (run_dir / "summary.json").exists() and load_checkpoint(run_dir)["finished"]
     if not summary_in_checkpoint:  # a finished checkpoint as earlier versions wrote it: evaluated again
         state = load_checkpoint(run_dir)
-        del state["summary"], state["format"]
+        state.pop("summary", None)
+        del state["format"]
         save_checkpoint(state, run_dir)
     evaluations = _count_evaluations(monkeypatch)
     assert train(config) == run_dir
