@@ -39,6 +39,7 @@ from .errors import ConfigError
 __all__ = [
     "DEFAULT_TASKS",
     "PRESETS",
+    "SECTIONS",
     "DataConfig",
     "DiagnosticsConfig",
     "EvalConfig",
@@ -408,8 +409,8 @@ def config_dict(cfg: TrainConfig) -> dict:
     return config
 
 
-# The sections of TrainConfig that are one dataclass each; ``policy`` is the config dataclass of its head.
-_SECTIONS: dict[str, type] = {
+#: The sections of TrainConfig that are one dataclass each; ``policy`` is the config dataclass of its head.
+SECTIONS: dict[str, type] = {
     "objective": ObjectiveConfig,
     "data": DataConfig,
     "eval": EvalConfig,
@@ -443,6 +444,6 @@ def typed_config(config: dict) -> TrainConfig:
     name = head.get("name")
     if name not in POLICIES:
         raise ConfigError(f"policy.name={name!r} is not valid; choose one of {list(POLICIES)}")
-    nodes = {key: _node(key, cls, values.pop(key, {})) for key, cls in _SECTIONS.items()}
+    nodes = {key: _node(key, cls, values.pop(key, {})) for key, cls in SECTIONS.items()}
     nodes["policy"] = _node(f"policy {name!r}", POLICIES.get(name).config, head)
     return _node("the config", TrainConfig, {**values, **nodes})

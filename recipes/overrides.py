@@ -16,7 +16,7 @@ from tar_rl.objectives import WEIGHTINGS
 from tar_rl.policies import POLICIES
 from tar_rl.registry import did_you_mean
 
-from .config import _SECTIONS, CONFIG_NAME, PRESETS, TrainConfig, register_configs
+from .config import CONFIG_NAME, PRESETS, SECTIONS, TrainConfig, register_configs
 from .errors import ConfigError
 from .validate import INT_SETTINGS, int_rule
 
@@ -45,8 +45,8 @@ def _head_settings(head: str) -> set[str]:
 
 def _settings() -> set[str]:
     """Every setting's dotted name but the policy head's (Hydra's ``defaults`` and ``hydra`` nodes left out)."""
-    scalars = _fields(TrainConfig) - {*_SECTIONS, "policy", "init", "defaults", "hydra"}
-    sections = {f"{section}.{name}" for section, cls in _SECTIONS.items() for name in _fields(cls)}
+    scalars = _fields(TrainConfig) - {*SECTIONS, "policy", "init", "defaults", "hydra"}
+    sections = {f"{section}.{name}" for section, cls in SECTIONS.items() for name in _fields(cls)}
     return scalars | sections | {"init.from"}
 
 
