@@ -80,7 +80,7 @@ class ObjectiveConfig:
         start: fraction of ``optim.steps`` trained with the uniform mean before the weighting starts
             (the paper: 20K of 100K steps = 0.2).
         ramp: fraction of ``optim.steps`` over which the mixing weight alpha rises from 0 to 1
-            (the paper: 30K of 100K = 0.3).
+            (the paper: 30K of 100K = 0.3); ``start + ramp <= 1``, so that TAR reaches full strength.
         shape: ``linear`` or ``cosine`` ramp.
         perturb_fraction: for ``perturb_high``/``perturb_low``: fraction of a segment's valid steps perturbed.
         perturb_scale: for the perturbation controls: std of the Gaussian action noise (action units).
