@@ -47,6 +47,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.suite import COLUMNS, Suite
+from tar_rl.registry import did_you_mean
 
 __all__ = [
     "ACTION_DIM",
@@ -93,7 +94,8 @@ def resolve_tasks(spec: Sequence[str]) -> list[str]:
         elif name in DMC_TASKS:
             names.add(name)
         else:
-            raise ValueError(f"unknown dm_control task {name!r}; valid: {[*DMC_TASKS, GROUP]}")
+            valid = [*DMC_TASKS, GROUP]
+            raise ValueError(f"unknown dm_control task {name!r}{did_you_mean(name, valid)}; valid: {valid}")
     if not names:
         raise ValueError(f"no dm_control task named; valid: {[*DMC_TASKS, GROUP]}")
     return [t for t in DMC_TASKS if t in names]
@@ -426,6 +428,7 @@ class DMControlSuite(Suite):
 
     name = "dm_control"
     max_horizon = MAX_HORIZON
+    action_dim = ACTION_DIM
     sources = ("dm_control",)
     task_names = DMC_TASKS
     instructions = INSTRUCTIONS

@@ -59,6 +59,7 @@ from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.suite import COLUMNS, Suite
 from tar_rl.data import load_dataset
+from tar_rl.registry import did_you_mean
 
 __all__ = [
     "ACTION_DIM",
@@ -254,8 +255,10 @@ def resolve_tasks(spec: Sequence[str]) -> list[str]:
             try:
                 suite_of(name)
             except ValueError:
+                known = [*table, *(task for tasks in table.values() for task in tasks)]
                 raise ValueError(
-                    f"unknown LIBERO task {name!r}; valid: the suites {list(SUITES)} or one of their task names"
+                    f"unknown LIBERO task {name!r}{did_you_mean(name, known)}; valid: the suites {list(SUITES)} or "
+                    "one of their task names"
                 ) from None
             names.append(name)
     return list(dict.fromkeys(names))

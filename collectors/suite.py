@@ -35,6 +35,7 @@ class Suite:
         name: its ``data.suite`` name.
         max_horizon: the largest ``eval.horizon``.
         images: whether ``data.image_size > 0`` (camera images) is supported.
+        action_dim: the action size of the datasets it collects (0: it collects none; a given dataset has its own).
         collects: whether it collects its own demonstrations (False: it evaluates imported ones only).
         sources: the dataset sources (``metadata.json``'s ``source``) it evaluates.
         no_collection: why it collects nothing and what to do instead (for a suite that does not collect).
@@ -46,6 +47,7 @@ class Suite:
     name: str = ""
     max_horizon: int = 0
     images: bool = False
+    action_dim: int = 0
     collects: bool = True
     sources: tuple[str, ...] = ()
     no_collection: str = "it collects no demonstrations"

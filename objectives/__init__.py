@@ -14,7 +14,13 @@ from .baselines import (
     truncate_count,
     truncate_weights,
 )
-from .elementwise import check_element_losses, element_mean, tar_arm_weights, tar_dimnorm_weights
+from .elementwise import (
+    check_element_losses,
+    check_gripper_dims,
+    element_mean,
+    tar_arm_weights,
+    tar_dimnorm_weights,
+)
 from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
 from .supervision import perturb_target
 from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
@@ -68,6 +74,7 @@ __all__ = [
     "Weighting",
     "WeightingParams",
     "check_element_losses",
+    "check_gripper_dims",
     "check_step_losses",
     "compiles_weights",
     "dro_time_weights",

@@ -44,7 +44,14 @@ from .weighting import (
     weights_from_scores,
 )
 
-__all__ = ["check_element_losses", "element_mean", "masked_mean", "tar_arm_weights", "tar_dimnorm_weights"]
+__all__ = [
+    "check_element_losses",
+    "check_gripper_dims",
+    "element_mean",
+    "masked_mean",
+    "tar_arm_weights",
+    "tar_dimnorm_weights",
+]
 
 
 def check_element_losses(losses: Tensor, valid: Tensor) -> None:
@@ -93,17 +100,25 @@ def _prepare(losses: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     return x, valid.flatten(2).any(-1)
 
 
-def _gripper_mask(n_dims: int, gripper_dims: tuple[int, ...], device: torch.device) -> Tensor:
-    """``[A]`` bool, ``True`` on the gripper's dims; refuses indices outside ``A`` or no arm dim left."""
+def check_gripper_dims(gripper_dims: tuple[int, ...], n_dims: int) -> None:
+    """Refuse ``gripper_dims`` (``tar_arm``'s) that name dims outside ``n_dims`` action dims or leave no arm dim."""
     bad = [d for d in gripper_dims if not -n_dims <= d < n_dims]
     if bad:
-        raise ValueError(f"gripper_dims {list(gripper_dims)} name dims outside the loss's {n_dims} action dims: {bad}.")
-    gripper = torch.zeros(n_dims, dtype=torch.bool, device=device)
-    gripper[[d % n_dims for d in gripper_dims]] = True
-    if bool(gripper.all()):
+        raise ValueError(
+            f"gripper_dims {list(gripper_dims)} name dims outside the loss's {n_dims} action dims: {bad} "
+            f"(valid: -{n_dims} .. {n_dims - 1})."
+        )
+    if len({d % n_dims for d in gripper_dims}) == n_dims:
         raise ValueError(
             f"gripper_dims {list(gripper_dims)} cover all {n_dims} action dims: no arm dim is left to score."
         )
+
+
+def _gripper_mask(n_dims: int, gripper_dims: tuple[int, ...], device: torch.device) -> Tensor:
+    """``[A]`` bool, ``True`` on the gripper's dims (:func:`check_gripper_dims` first)."""
+    check_gripper_dims(gripper_dims, n_dims)
+    gripper = torch.zeros(n_dims, dtype=torch.bool, device=device)
+    gripper[[d % n_dims for d in gripper_dims]] = True
     return gripper
 
 

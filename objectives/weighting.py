@@ -65,6 +65,10 @@ __all__ = [
 DEFAULT_GAMMA = 1.0
 #: Cap on a single step's weight, in units of the segment's mean weight (Eq. 8).
 DEFAULT_W_MAX = 3.0
+#: The smallest cap ``cap="paper"`` renormalises to finite weights: the smallest normal float32 (weights are
+#: computed in float32 at least). Clipping every weight at a smaller ``w_max`` and rescaling to unit mean
+#: multiplies by ``1 / w_max``, which overflows float32.
+MIN_W_MAX = float(torch.finfo(torch.float32).tiny)
 #: Added to the segment's standard deviation before dividing (Eq. 5). Per-step imitation
 #: losses of a trained policy are ~1e-3..1e-1 with spreads of the same order, so 1e-8 leaves
 #: the z-scores untouched there and only matters when a segment's losses are all equal.
@@ -152,6 +156,11 @@ class WeightingParams:
         if self.cap == "exact" and self.w_max < 1:
             raise ValueError(
                 f"cap='exact' needs w_max >= 1 (weights of mean 1 cannot all be below 1), got {self.w_max!r}."
+            )
+        if self.w_max < MIN_W_MAX:
+            raise ValueError(
+                f"w_max must be >= {MIN_W_MAX:.4g} (the smallest normal float32: renormalising weights clipped at a "
+                f"smaller cap overflows to inf), got {self.w_max!r}."
             )
         for name, ok, rule in (
             ("tilt", lambda v: v > 0, "a finite number > 0"),

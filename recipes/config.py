@@ -41,6 +41,7 @@ __all__ = [
     "DEFAULT_TASKS",
     "OBJECTIVE_PRESETS",
     "PRESETS",
+    "SECTIONS",
     "DataConfig",
     "DiagnosticsConfig",
     "EvalConfig",
@@ -81,7 +82,7 @@ class ObjectiveConfig:
         start: fraction of ``optim.steps`` trained with the uniform mean before the weighting starts
             (the paper: 20K of 100K steps = 0.2).
         ramp: fraction of ``optim.steps`` over which the mixing weight alpha rises from 0 to 1
-            (the paper: 30K of 100K = 0.3).
+            (the paper: 30K of 100K = 0.3); ``start + ramp <= 1``, so that TAR reaches full strength.
         shape: ``linear`` or ``cosine`` ramp.
         perturb_fraction: for ``perturb_high``/``perturb_low``: fraction of a segment's valid steps perturbed.
         perturb_scale: for the perturbation controls: std of the Gaussian action noise (action units).
@@ -422,8 +423,8 @@ def config_dict(cfg: TrainConfig) -> dict:
     return config
 
 
-# The sections of TrainConfig that are one dataclass each; ``policy`` is the config dataclass of its head.
-_SECTIONS: dict[str, type] = {
+#: The sections of TrainConfig that are one dataclass each; ``policy`` is the config dataclass of its head.
+SECTIONS: dict[str, type] = {
     "objective": ObjectiveConfig,
     "data": DataConfig,
     "eval": EvalConfig,
@@ -457,6 +458,6 @@ def typed_config(config: dict) -> TrainConfig:
     name = head.get("name")
     if name not in POLICIES:
         raise ConfigError(f"policy.name={name!r} is not valid; choose one of {list(POLICIES)}")
-    nodes = {key: _node(key, cls, values.pop(key, {})) for key, cls in _SECTIONS.items()}
+    nodes = {key: _node(key, cls, values.pop(key, {})) for key, cls in SECTIONS.items()}
     nodes["policy"] = _node(f"policy {name!r}", POLICIES.get(name).config, head)
     return _node("the config", TrainConfig, {**values, **nodes})

@@ -8,6 +8,7 @@ nothing has none, and the held-out entries are then ``None``. The numbers are co
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import pandas as pd
@@ -96,7 +97,8 @@ def fit_summary(
         ``passes``, ``demo_steps``, ``final_uniform_loss`` (mean over the last 5% of the steps),
         ``train_loss`` (mean per-step loss along the training demonstrations used below),
         ``heldout`` (``seed``, ``episodes``, ``loss``, ``loss_by_phase``; ``None`` without held-out
-        data) and ``alignment`` (:func:`tar_rl.diagnostics.alignment`; ``None`` without held-out data).
+        data) and ``alignment`` (:func:`tar_rl.diagnostics.alignment`; ``None`` without held-out data). A mean
+        that is not finite (a policy whose losses are not) is ``None``.
     """
     data, diag, steps = cfg.data, cfg.diagnostics, cfg.optim.steps
     rows = record(objective, episodes_of(dataset, tasks, diag.train_episodes))
@@ -118,4 +120,14 @@ def fit_summary(
             "loss_by_phase": diagnostics.phase_means(losses),
         }
         out["alignment"] = {"bins": diag.bins, **diagnostics.alignment(train, losses, diag.bins)}
-    return out
+    return _finite(out)
+
+
+def _finite(value):
+    """``value`` with every non-finite float replaced by ``None`` (a policy with non-finite losses has no mean
+    loss), so that ``summary.json`` stays strict JSON."""
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

@@ -8,7 +8,7 @@ from pathlib import Path
 import pandas as pd
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.io import write_csv_atomic
+from tar_rl.io import check_writable, write_csv_atomic
 from tar_rl.metrics import summarize
 from tar_rl.policies import DataInfo
 from tar_rl.runs import (
@@ -18,6 +18,7 @@ from tar_rl.runs import (
 
 from .builders import make_evaluation_pool, make_evaluator, make_policy
 from .config import typed_config
+from .errors import ConfigError
 from .rundir import with_defaults
 from .validate import validate
 
@@ -54,7 +55,8 @@ def evaluate_checkpoint(
 
     Raises:
         FileNotFoundError: no checkpoint there. ValueError / ConfigError: not a checkpoint, a
-        policy that does not fit it, or bad settings (named).
+        policy that does not fit it, bad settings (named), or a file for the rollouts that cannot be written
+        (checked before the rollouts run).
     """
     path = Path(path)
     state = load_checkpoint(path)
@@ -71,11 +73,17 @@ def evaluate_checkpoint(
     job = validate(config)
     ev = job.config.eval
     actor = policy_from_checkpoint(state, path)
+    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev.seed}.csv"
+    try:  # before the rollouts, which a folder that cannot take their file would lose
+        check_writable(target.parent)
+        if target.is_dir():
+            raise IsADirectoryError(f"{target} is a folder")
+    except OSError as err:
+        raise ConfigError(f"cannot write the rollouts to {target} ({err}); choose a writable file with --out") from None
     with make_evaluation_pool(job.suite) as pool:
         rollouts_df = make_evaluator(ev, job.config.data, job.eval_tasks, pool, progress=progress, suite=job.suite)(
             actor
         )
-    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev.seed}.csv"
     write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
     print(f"{path} (step {state['step']}), {ev.rollouts} rollouts per task, seed {ev.seed}; rollouts in {target}")
     print_table(summarize(rollouts_df))

@@ -34,6 +34,7 @@ import copy
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +44,22 @@ from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed
 from tar_rl.collectors.suites import SUITES
-from tar_rl.errors import DiskFullError, RunInterrupted, TarRLError, debug_mode, interrupted, one_line
+from tar_rl.errors import (
+    DiskFullError,
+    RunInterrupted,
+    TarRLError,
+    debug_mode,
+    interrupted,
+    one_line,
+    sigterm_raises,
+    terminated,
+)
 from tar_rl.io import atomic_write, write_json_atomic
 from tar_rl.metrics import summarize
 from tar_rl.policies import DataInfo
 from tar_rl.runlock import run_lock
 from tar_rl.runs import (
+    SUMMARY_FILE,
     RunLogs,
     git_commit,
     json_metric,
@@ -72,6 +83,7 @@ from .builders import (
 )
 from .config import CONFIG_NAME, TrainConfig, config_dict, register_configs
 from .errors import ConfigError, TrainingError
+from .overrides import check_overrides
 from .record import demo_episodes, record_weights
 from .rundir import check_resumable, identity_differences, last_checkpoint, prepare_run_dir, run_name
 from .validate import Job, resolve_config, validate
@@ -87,15 +99,16 @@ def _eval_actor(actor: TensorDictModuleBase, ema) -> TensorDictModuleBase:
 # -- The job -----------------------------------------------------------------------------------
 
 
-def _interruption(run_dir: Path, trainer: Trainer | None) -> str:
-    """Where a run stopped by Ctrl-C stopped, and how to resume it."""
+def _interruption(run_dir: Path, trainer: Trainer | None, err: BaseException) -> str:
+    """Where a run stopped by Ctrl-C (or SIGTERM) stopped, and how to resume it."""
     if trainer is None:
         where = "before training started (while loading or collecting the dataset)"
     elif trainer.step < trainer.steps:
         where = f"at step {trainer.step} of {trainer.steps}"
     else:
         where = f"in the final evaluation (after step {trainer.steps})"
-    return f"interrupted {where}; {last_checkpoint(run_dir)}: run the same command to resume"
+    what = "terminated (SIGTERM)" if terminated(err) else "interrupted"
+    return f"{what} {where}; {last_checkpoint(run_dir)}: run the same command to resume"
 
 
 class Trainer:
@@ -210,8 +223,12 @@ class Trainer:
                 self.window_sums[name] = self.window_sums.get(name, 0.0) + value
             self.window_count += window["count"]
 
-    def checkpoint(self, finished: bool = False) -> None:
-        """Write the whole training state (rank 0; every rank holds the same state but its logging window)."""
+    def checkpoint(self, summary: dict | None = None) -> None:
+        """Write the whole training state (rank 0; every rank holds the same state but its logging window).
+
+        ``summary``: the run's ``summary.json``, given once the final evaluation is done; the checkpoint is then
+        the finished run's, and holds what a re-run writes if the job ends before ``summary.json`` is written.
+        """
         windows = self.dist.all_gather_object({"sums": dict(self.window_sums), "count": self.window_count})
         if not self.dist.main:
             return
@@ -219,7 +236,8 @@ class Trainer:
         save_checkpoint(
             {
                 "step": self.step,
-                "finished": finished,
+                "finished": summary is not None,
+                "summary": summary,
                 "config": config_dict(self.cfg),
                 "data_info": self.info.to_dict(),
                 "policy": self.policy.actor.state_dict(),
@@ -266,7 +284,9 @@ class Trainer:
         if not finite:
             self.skipped += 1
             self.optimizer.zero_grad(set_to_none=True)
-            self.scheduler.step()
+            with warnings.catch_warnings():  # the schedule keeps its step count; torch warns when step 1 is skipped
+                warnings.filterwarnings("ignore", "Detected call of `lr_scheduler.step\\(\\)` before", UserWarning)
+                self.scheduler.step()
             if self.skipped > self.cfg.optim.skip_nonfinite:
                 allowed = self.cfg.optim.skip_nonfinite
                 raise TrainingError(
@@ -302,8 +322,11 @@ class Trainer:
         if not self.dist.main:
             return None
         table = summarize(rollouts)
-        self.logs.rollouts += rollout_records(step, rollouts)
-        self.logs.metrics += summary_rows(step, table)
+        # An evaluation replaces the rows of an earlier one at its step (a finished checkpoint that holds no
+        # summary, as earlier versions wrote them, is evaluated again), so that every step is logged once.
+        self.logs.rollouts = [r for r in self.logs.rollouts if r["step"] != step] + rollout_records(step, rollouts)
+        kept = [r for r in self.logs.metrics if not (r[0] == step and r[1] == "eval")]
+        self.logs.metrics = kept + summary_rows(step, table)
         return table
 
     # -- the loop ---------------------------------------------------------------------------
@@ -349,7 +372,8 @@ class Trainer:
                 if done in self.record_at:
                     self.logs.weights += record_weights(self.objective, self.episodes, self.cfg.data.slice_len, done)
                     self.objective.train()
-                if done % self.cfg.logging.checkpoint_every == 0 and done != self.steps:
+                # The last step is checkpointed too: the final evaluation and diagnostics never cost training.
+                if done % self.cfg.logging.checkpoint_every == 0 or done == self.steps:
                     self.train_seconds += time.perf_counter() - tick
                     tick = time.perf_counter()
                     self.checkpoint()
@@ -360,7 +384,10 @@ class Trainer:
         table = self.evaluate(self.steps)
         self.eval_seconds = time.perf_counter() - start
         self.fit = self.diagnose() if self.dist.main else None
-        self.checkpoint(finished=True)
+        self.summary = self.summarize(table) if self.dist.main else None
+        # The final evaluation's rows and the summary go into the checkpoint together: a job that ends before
+        # writing summary.json is completed from it by a re-run, never evaluated again.
+        self.checkpoint(summary=self.summary)
         return table
 
     def diagnose(self) -> dict:
@@ -394,9 +421,10 @@ class Trainer:
             (step, "train", "skipped", float(self.skipped)),
         ]
 
-    def write_summary(self, table: pd.DataFrame | None) -> None:
+    def summarize(self, table: pd.DataFrame | None) -> dict:
+        """The run's ``summary.json``: the final evaluation ``table`` per group, diagnostics, timings, provenance."""
         cfg = self.cfg
-        summary = {
+        return {
             "run_name": self.run_dir.name,
             "objective": cfg.objective.name,
             "policy": cfg.policy.name,
@@ -420,10 +448,36 @@ class Trainer:
             "machine": machine(),
             "versions": {"torch": torch.__version__, **self.dataset.metadata["versions"]},
         }
-        write_json_atomic(summary, self.run_dir / "summary.json")
 
 
 _LOGGED = ("loss_tar", "uniform_loss", "tar_mix", "weight_max", "weight_ess")
+
+
+def _print_results(run_dir: Path, settings: TrainConfig, table: pd.DataFrame | None, skipped: int) -> None:
+    """The finished run's last lines: its final evaluation (or that there was none) and its skipped steps."""
+    steps = settings.optim.steps
+    if table is None:
+        print(f"\n{run_dir}: {steps} steps; not evaluated (eval.rollouts=0)")
+    else:
+        print(f"\n{run_dir}: {steps} steps, final evaluation ({settings.eval.rollouts} rollouts per task):")
+        print_table(table)
+    if skipped:
+        print(
+            f"{run_dir}: {skipped} of {steps} steps were skipped for a non-finite loss or gradient "
+            f"(optim.skip_nonfinite={settings.optim.skip_nonfinite})"
+        )
+
+
+def _complete(run_dir: Path, state: dict, settings: TrainConfig) -> None:
+    """Complete a run that ended after its final checkpoint but before its ``summary.json``: the logs and the
+    summary as that checkpoint holds them (its final evaluation included), without evaluating again."""
+    logs = RunLogs(run_dir, **state["logs"])
+    logs.write()
+    write_json_atomic(state["summary"], run_dir / SUMMARY_FILE)
+    print(f"{run_dir}: finished ({state['step']} steps) but its summary was not written; written from its checkpoint")
+    final = [row for row in logs.rollouts if row["step"] == state["step"]]
+    table = summarize(pd.DataFrame(final)) if final else None
+    _print_results(run_dir, settings, table, state["skipped"])
 
 
 def _agree_across_ranks(cfg: TrainConfig, dist: distributed.Dist) -> None:
@@ -477,9 +531,14 @@ def train(cfg: Any) -> Path:
             held.enter_context(run_lock(run_dir))
         dist.barrier()
         resume = check_resumable(run_dir, config)
-        if resume is not None and resume.get("finished") and (run_dir / "summary.json").exists():
+        if resume is not None and resume.get("finished") and (run_dir / SUMMARY_FILE).exists():
             if dist.main:
                 print(f"{run_dir}: finished already ({resume['step']} steps); not run again")
+            return run_dir
+        if resume is not None and resume.get("summary") is not None:
+            if dist.main:
+                _complete(run_dir, resume, settings)
+            dist.barrier()
             return run_dir
         if dist.main:
             from omegaconf import OmegaConf
@@ -492,20 +551,10 @@ def train(cfg: Any) -> Path:
         except BaseException as err:
             if not interrupted(err):
                 raise
-            raise RunInterrupted(_interruption(run_dir, trainer)) from err
+            raise RunInterrupted(_interruption(run_dir, trainer, err)) from err
         if dist.main:
-            trainer.write_summary(table)
-            rollouts = settings.eval.rollouts
-            if table is None:
-                print(f"\n{run_dir}: {trainer.steps} steps; not evaluated (eval.rollouts=0)")
-            else:
-                print(f"\n{run_dir}: {trainer.steps} steps, final evaluation ({rollouts} rollouts per task):")
-                print_table(table)
-            if trainer.skipped:
-                print(
-                    f"{run_dir}: {trainer.skipped} of {trainer.steps} steps were skipped for a non-finite loss or "
-                    f"gradient (optim.skip_nonfinite={settings.optim.skip_nonfinite})"
-                )
+            write_json_atomic(trainer.summary, run_dir / SUMMARY_FILE)
+            _print_results(run_dir, settings, table, trainer.skipped)
         del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()
         return run_dir
@@ -542,15 +591,24 @@ def hydra_main(argv: list[str] | None = None) -> int:
         except BaseException as err:
             if debug_mode() or not interrupted(err):
                 raise
+            stopped = terminated(err)
             if not isinstance(err, RunInterrupted):
-                err = RunInterrupted("interrupted; run the same command to start (or resume) the run")
+                what = "terminated (SIGTERM)" if stopped else "interrupted"
+                err = RunInterrupted(f"{what}; run the same command to start (or resume) the run")
             print(one_line("tar-rl train", err), file=sys.stderr)
-            raise SystemExit(130) from None
+            raise SystemExit(143 if stopped else 130) from None
 
+    args = sys.argv[2:] if argv is None else list(argv)
+    if not debug_mode():  # Hydra's own report of a bad command line, in debug mode
+        try:
+            check_overrides(args)
+        except ConfigError as err:
+            raise SystemExit(one_line("tar-rl train", err)) from None
     saved = sys.argv
-    sys.argv = ["tar-rl train", *(sys.argv[2:] if argv is None else argv)]
+    sys.argv = ["tar-rl train", *args]
     try:
-        _main()
+        with sigterm_raises():  # SIGTERM (a scheduler ending the job) stops it as Ctrl-C does
+            _main()
     finally:
         sys.argv = saved
     return 0

@@ -25,7 +25,8 @@ def record_weights(
     objective's gamma, w_max, eps and cap at full strength, whatever the run's own weighting and
     schedule; the gripper is the last action dim of the demonstration's action; ``loss_dim<i>`` is
     action dim ``i``'s loss at that step (:meth:`tar_rl.TARLoss.step_and_dim_losses`, from the same
-    pass of the head), absent for a head with one loss per step.
+    pass of the head), absent for a head with one loss per step. A demonstration with a non-finite loss (a run
+    whose steps were all skipped by ``optim.skip_nonfinite``) has no TAR weights: its weights are NaN.
     """
     rows = []
     was_training = objective.training
@@ -36,7 +37,10 @@ def record_weights(
             for task, episode, td in episodes:
                 losses, dims = objective.step_and_dim_losses(td.unsqueeze(0))
                 losses = losses.squeeze(0).float().cpu()
-                weight = window_weights(losses, slice_len, gamma=p.gamma, w_max=p.w_max, eps=p.eps, cap=p.cap)
+                if bool(torch.isfinite(losses).all()):
+                    weight = window_weights(losses, slice_len, gamma=p.gamma, w_max=p.w_max, eps=p.eps, cap=p.cap)
+                else:
+                    weight = torch.full_like(losses, float("nan"))
                 gripper = td["action"][..., -1].float().cpu()
                 per_dim = [()] * losses.shape[0] if dims is None else dims.squeeze(0).float().cpu().tolist()
                 rows += [

@@ -10,7 +10,7 @@ import copy
 from pathlib import Path
 
 from tar_rl import runs
-from tar_rl.io import atomic_write
+from tar_rl.io import check_writable
 from tar_rl.runs import (
     CHECKPOINT,
     config_differences,
@@ -64,9 +64,7 @@ def identity_differences(old: dict, new: dict) -> list[str]:
 
 def prepare_run_dir(run_dir: Path) -> None:
     try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write(run_dir / ".write-test", lambda f: f.write("ok"))
-        (run_dir / ".write-test").unlink()
+        check_writable(run_dir)
     except OSError as err:
         raise ConfigError(f"cannot write to the run directory {run_dir}: {err}") from None
 

@@ -12,7 +12,7 @@ from typing import Any
 
 from tar_rl.collectors.suites import SUITES, Suite, suite_for
 from tar_rl.data import DemoDataset
-from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, WeightingParams
+from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, WeightingParams, check_gripper_dims
 from tar_rl.policies import DataInfo, Policy
 
 from . import diagnose, post_training
@@ -20,7 +20,49 @@ from .builders import given_dataset, make_objective, make_policy, torch_device
 from .config import ObjectiveConfig, OptimConfig, TrainConfig, typed_config
 from .errors import ConfigError
 
-__all__ = ["Job", "resolve_config", "validate"]
+__all__ = ["INT_SETTINGS", "MAX_LR", "MAX_STEPS", "Job", "int_rule", "resolve_config", "validate"]
+
+#: The most optimiser steps a job may ask for (the paper trains 100K; a billion steps of the smallest head take
+#: weeks on a GPU): a larger count is a typo, refused before work rather than found out days later.
+MAX_STEPS = 1_000_000_000
+#: The largest peak learning rate: AdamW moves each weight by about ``lr`` per step, so a larger one makes
+#: the weights of these heads (of order 1) meaningless at the first step.
+MAX_LR = 1.0
+
+#: The integer settings with fixed bounds: ``(low, high)``, ``high`` None for none (``eval.horizon``'s bound is
+#: its suite's; ``data.workers`` and ``eval.workers`` may also be null).
+INT_SETTINGS: dict[str, tuple[int, int | None]] = {
+    "seed": (0, None),
+    "threads": (0, None),
+    "data.seed": (0, None),
+    "data.n_demos": (1, None),
+    "data.slice_len": (1, None),
+    "data.batch_segments": (1, None),
+    "data.chunk_horizon": (1, None),
+    "data.history": (1, None),
+    "data.image_size": (0, None),
+    "data.workers": (0, None),
+    "eval.seed": (0, None),
+    "eval.rollouts": (0, None),
+    "eval.every": (0, None),
+    "eval.workers": (0, None),
+    "optim.steps": (1, MAX_STEPS),
+    "optim.warmup": (0, None),
+    "optim.skip_nonfinite": (0, None),
+    "logging.every": (1, None),
+    "logging.checkpoint_every": (1, None),
+    "logging.record_episodes": (1, None),
+    "diagnostics.heldout_demos": (0, None),
+    "diagnostics.heldout_seed": (0, None),
+    "diagnostics.train_episodes": (1, None),
+    "diagnostics.bins": (2, None),
+}
+_NULLABLE = ("data.workers", "eval.workers")
+
+
+def int_rule(low: int, high: int | None) -> str:
+    """What an integer setting of these bounds must be, in words (``an integer >= 0``)."""
+    return f"an integer between {low} and {high}" if high is not None else f"an integer >= {low}"
 
 
 def resolve_config(cfg: Any) -> dict:
@@ -61,8 +103,7 @@ class Job:
 def _check_int(name: str, value, low: int, high: int | None = None) -> None:
     ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
     if not ok:
-        bounds = f"between {low} and {high}" if high is not None else f">= {low}"
-        raise ConfigError(f"{name} must be an integer {bounds}, got {value!r}")
+        raise ConfigError(f"{name} must be {int_rule(low, high)}, got {value!r}")
 
 
 def _check_choice(name: str, value, choices: Sequence[str]) -> None:
@@ -108,11 +149,17 @@ def validate(config: dict) -> Job:
                 chunk_horizon=cfg.data.chunk_horizon,
                 history=cfg.data.history,
                 image_size=cfg.data.image_size,
+                **({"action_dim": suite.action_dim} if suite.action_dim else {}),
             )
         policy = make_policy(cfg.policy, placeholder)
         make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
     except (ValueError, TypeError) as err:
         raise ConfigError(str(err)) from None
+    if cfg.objective.name == "tar_arm":  # the weighting that reads gripper_dims, indices into the action dims
+        try:
+            check_gripper_dims(tuple(cfg.objective.gripper_dims), placeholder.action_dim)
+        except ValueError as err:
+            raise ConfigError(f"objective.{err}") from None
     _check_init(cfg, policy, placeholder)
     return Job(cfg, **tasks)
 
@@ -122,9 +169,19 @@ def _check_objective(obj: ObjectiveConfig) -> None:
     _check_choice("objective.cap", obj.cap, ["paper", "exact"])
     _check_choice("objective.shape", obj.shape, ["linear", "cosine"])
     _check_choice("objective.compile", obj.compile, list(COMPILE_MODES))
-    for key, value in (("start", obj.start), ("ramp", obj.ramp)):
-        if not 0 <= value <= 1:
-            raise ConfigError(f"objective.{key} is a fraction of optim.steps and must lie in [0, 1], got {value}")
+    if not 0 <= obj.start < 1:
+        never = " (the weighting would start after the last step: TAR would never reach full strength)"
+        raise ConfigError(
+            f"objective.start is a fraction of optim.steps and must lie in [0, 1), got {obj.start}"
+            + (never if obj.start >= 1 else "")
+        )
+    if not 0 <= obj.ramp <= 1:
+        raise ConfigError(f"objective.ramp is a fraction of optim.steps and must lie in [0, 1], got {obj.ramp}")
+    if obj.start + obj.ramp > 1 + 1e-9:
+        raise ConfigError(
+            f"objective.start + objective.ramp must be <= 1 (the ramp ends by the last step), got {obj.start} + "
+            f"{obj.ramp} = {obj.start + obj.ramp:g}: TAR would never reach full strength; lower one of them"
+        )
     _check_objective_numbers(obj)
 
 
@@ -160,32 +217,14 @@ def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset 
 
 
 def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:
-    data, ev, opt, log = cfg.data, cfg.eval, cfg.optim, cfg.logging
-    for name, value, low in (
-        ("seed", cfg.seed, 0),
-        ("data.seed", data.seed, 0),
-        ("eval.seed", ev.seed, 0),
-        ("data.n_demos", data.n_demos, 1),
-        ("data.slice_len", data.slice_len, 1),
-        ("data.batch_segments", data.batch_segments, 1),
-        ("data.chunk_horizon", data.chunk_horizon, 1),
-        ("data.history", data.history, 1),
-        ("data.image_size", data.image_size, 0),
-        ("eval.rollouts", ev.rollouts, 0),
-        ("eval.every", ev.every, 0),
-        ("optim.steps", opt.steps, 1),
-        ("optim.warmup", opt.warmup, 0),
-        ("optim.skip_nonfinite", opt.skip_nonfinite, 0),
-        ("logging.every", log.every, 1),
-        ("logging.checkpoint_every", log.checkpoint_every, 1),
-        ("logging.record_episodes", log.record_episodes, 1),
-    ):
-        _check_int(name, value, low)
+    ev, opt, log = cfg.eval, cfg.optim, cfg.logging
+    for name, (low, high) in INT_SETTINGS.items():
+        node = cfg
+        for part in name.split("."):
+            node = getattr(node, part)
+        if not (node is None and name in _NULLABLE):
+            _check_int(name, node, low, high)
     _check_int("eval.horizon", ev.horizon, 1, suite.max_horizon if suite is not None else None)
-    _check_int("threads", cfg.threads, 0)
-    for name, value in (("data.workers", data.workers), ("eval.workers", ev.workers)):
-        if value is not None:
-            _check_int(name, value, 0)
     for step in log.record_weights_at:
         if not (step == -1 or (isinstance(step, int) and 1 <= step <= opt.steps)):
             raise ConfigError(f"logging.record_weights_at: {step!r} is not a step in 1..{opt.steps} (or -1, the last)")
@@ -193,8 +232,8 @@ def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:
 
 
 def _check_optim(opt: OptimConfig) -> None:
-    if not (opt.lr > 0 and math.isfinite(opt.lr)):
-        raise ConfigError(f"optim.lr must be a positive number, got {opt.lr}")
+    if not 0 < opt.lr <= MAX_LR:
+        raise ConfigError(f"optim.lr must be a number in (0, {MAX_LR:g}], got {opt.lr}")
     _check_choice("optim.decay", opt.decay, ["cosine", "constant"])
     if not 0 <= opt.min_lr_ratio <= 1:
         raise ConfigError(f"optim.min_lr_ratio must lie in [0, 1], got {opt.min_lr_ratio}")
@@ -207,11 +246,7 @@ def _check_optim(opt: OptimConfig) -> None:
 
 
 def _check_diagnostics(cfg: TrainConfig) -> None:
-    diag = cfg.diagnostics
-    for name, value in (("heldout_demos", diag.heldout_demos), ("heldout_seed", diag.heldout_seed)):
-        _check_int(f"diagnostics.{name}", value, 0)
-    _check_int("diagnostics.train_episodes", diag.train_episodes, 1)
-    _check_int("diagnostics.bins", diag.bins, 2)
+    """The held-out seeds against the training and evaluation ones (the group's numbers are in :data:`INT_SETTINGS`)."""
     try:
         diagnose.check_heldout_seeds(cfg)
     except ValueError as err:
@@ -279,8 +314,13 @@ def _check_objective_numbers(obj: ObjectiveConfig) -> None:
         "dro_eta",
         "dro_bins",
     )
-    try:  # the baselines' rules live in WeightingParams; its message names the parameter
-        WeightingParams(**{key: getattr(obj, key) for key in baselines}, gripper_dims=tuple(obj.gripper_dims))
+    try:  # the cap's floor and the baselines' rules live in WeightingParams; its message names the parameter
+        WeightingParams(
+            **{key: getattr(obj, key) for key in baselines},
+            w_max=obj.w_max,
+            cap=obj.cap,
+            gripper_dims=tuple(obj.gripper_dims),
+        )
     except ValueError as err:
         raise ConfigError(f"objective.{err}") from None
     if not 0 <= obj.perturb_fraction <= 1:

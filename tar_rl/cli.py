@@ -117,12 +117,13 @@ def main(argv: list[str] | None = None) -> int:
 
 def _data_command(args: argparse.Namespace) -> int:
     if args.data_command == "import":
+        from tar_rl.errors import DiskFullError
         from tar_rl.importers import IMPORTERS, DemoImportError
 
         common = {"out": args.out, "chunk_horizon": args.chunk_horizon, "history": args.history, "clip": args.clip}
         try:
             IMPORTERS.get(args.format).run(args, **common)
-        except DemoImportError as err:
+        except (DemoImportError, DiskFullError) as err:
             if debug_mode():
                 raise
             raise SystemExit(one_line(f"tar-rl data import {args.format}", err)) from None

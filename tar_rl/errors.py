@@ -20,11 +20,14 @@ __all__ = [
     "DiskFullError",
     "RunInterrupted",
     "TarRLError",
+    "Terminated",
     "children_ignore_sigint",
     "debug_mode",
     "disk_full_cause",
     "interrupted",
     "one_line",
+    "sigterm_raises",
+    "terminated",
 ]
 
 #: The environment variable that asks for whole tracebacks (Hydra's own name for it).
@@ -46,22 +49,23 @@ class DiskFullError(TarRLError, OSError):
     An ``OSError`` (``errno``, ``filename`` set), so code that handles failed writes still catches it.
     """
 
-    def __init__(self, path: str | os.PathLike, cause: OSError):
+    def __init__(self, path: str | os.PathLike, cause: OSError, detail: str = ""):
         super().__init__(cause.errno, os.strerror(cause.errno), str(path))
         self.path = Path(path)
+        self.detail = detail
         kind = "disk quota exceeded" if cause.errno == errno.EDQUOT else "disk full"
         #: What happened and where, without the consequence (for callers that add their own).
-        self.what = f"no space left on device while writing {self.path} ({kind})"
+        self.what = f"no space left on device while writing {self.path} ({kind}{': ' + detail if detail else ''})"
 
     def __str__(self) -> str:
         return f"{self.what}; the previous {self.path.name}, if any, is unchanged"
 
     def __reduce__(self):  # picklable (errors cross process boundaries in the evaluator and Hydra launchers)
-        return (_disk_full, (str(self.path), self.errno))
+        return (_disk_full, (str(self.path), self.errno, self.detail))
 
 
-def _disk_full(path: str, code: int) -> DiskFullError:
-    return DiskFullError(path, OSError(code, os.strerror(code)))
+def _disk_full(path: str, code: int, detail: str = "") -> DiskFullError:
+    return DiskFullError(path, OSError(code, os.strerror(code)), detail)
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -69,6 +73,34 @@ class RunInterrupted(KeyboardInterrupt):
 
     A ``KeyboardInterrupt``, so code that lets Ctrl-C through still does.
     """
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received inside :func:`sigterm_raises`: the job stops as on Ctrl-C, and the command exits 143.
+
+    A ``KeyboardInterrupt``, so everything that ends a job cleanly on Ctrl-C does so on SIGTERM too.
+    """
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated("SIGTERM")
+
+
+@contextlib.contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """Inside the block SIGTERM raises :class:`Terminated` in the main thread instead of ending the process silently.
+
+    Outside the main thread, where signal handlers cannot be set, this does nothing. Worker processes
+    start with SIGTERM's default action (they are spawned), so ending them still ends them.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 def _chain(err: BaseException | None) -> Iterator[BaseException]:
@@ -97,6 +129,11 @@ def interrupted(err: BaseException) -> bool:
     then found in the context.
     """
     return any(isinstance(e, KeyboardInterrupt) for e in _chain(err))
+
+
+def terminated(err: BaseException) -> bool:
+    """Whether ``err`` is, or was raised while handling, a :class:`Terminated` (SIGTERM)."""
+    return any(isinstance(e, Terminated) for e in _chain(err))
 
 
 def debug_mode() -> bool:

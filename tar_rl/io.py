@@ -7,8 +7,10 @@ that fails for want of space (``ENOSPC``, ``EDQUOT``; torch reports it inside ``
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -16,7 +18,47 @@ from typing import IO, Any
 
 from tar_rl.errors import DiskFullError, disk_full_cause
 
-__all__ = ["atomic_write", "save_torch_atomic", "write_csv_atomic", "write_json_atomic"]
+__all__ = [
+    "atomic_write",
+    "check_writable",
+    "require_free_space",
+    "save_torch_atomic",
+    "write_csv_atomic",
+    "write_json_atomic",
+]
+
+#: Room kept free beside a file of known size, for the small files written with it (metadata, digests).
+SPARE_BYTES = 1 << 20
+
+
+def require_free_space(folder: str | os.PathLike, nbytes: int, path: str | os.PathLike) -> None:
+    """Refuse to write ``nbytes`` (plus :data:`SPARE_BYTES`) as ``path`` into ``folder`` unless its disk has room.
+
+    A memory-mapped file whose pages find no room on the disk kills the process with SIGBUS, which Python
+    cannot catch (no message, a temporary folder left behind); writes into memory maps are checked here first.
+
+    Raises:
+        DiskFullError: naming ``path``, the bytes needed and the bytes free.
+    """
+    free = shutil.disk_usage(folder).free
+    if free < nbytes + SPARE_BYTES:
+        need = f"it needs {(nbytes + SPARE_BYTES) / 1e6:.1f} MB, {free / 1e6:.1f} MB are free under {folder}"
+        raise DiskFullError(path, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)), need)
+
+
+def check_writable(folder: str | os.PathLike) -> Path:
+    """Make ``folder`` (and its parents) if needed and create and remove a file in it: a folder the results of
+    some work are to be written to, checked before the work.
+
+    Raises:
+        OSError: the folder cannot be made or written to (read-only, no permission, a file in its place).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-test.", suffix=".tmp")
+    os.close(fd)
+    os.unlink(probe)
+    return folder
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[IO], object], binary: bool = False) -> Path:

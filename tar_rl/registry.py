@@ -11,12 +11,19 @@ This module imports nothing from the project: every layer (``objectives`` includ
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import difflib
+from collections.abc import Iterable, Iterator
 from typing import Generic, TypeVar
 
-__all__ = ["Registry", "UnknownName"]
+__all__ = ["Registry", "UnknownName", "did_you_mean"]
 
 T = TypeVar("T")
+
+
+def did_you_mean(name: object, choices: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` naming the choice closest to a mistyped ``name``; ``""`` when none is close."""
+    close = difflib.get_close_matches(str(name), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 class UnknownName(ValueError):
@@ -59,7 +66,8 @@ class Registry(Generic[T]):
         try:
             return self._entries[name]
         except (KeyError, TypeError):
-            raise UnknownName(f"unknown {self.kind} {name!r}; registered: {', '.join(self._entries)}") from None
+            hint = did_you_mean(name, self._entries)
+            raise UnknownName(f"unknown {self.kind} {name!r}{hint}; registered: {', '.join(self._entries)}") from None
 
     def build(self, name: str, *args, **kwargs):
         """``get(name).build(*args, **kwargs)``."""

@@ -30,6 +30,7 @@ from tar_rl.metrics import REQUIRED_COLUMNS, as_percent
 __all__ = [
     "CHECKPOINT",
     "CHECKPOINT_FORMAT",
+    "CHECKPOINT_KEYS",
     "CONFIG_FILE",
     "METRICS_COLUMNS",
     "METRICS_FILE",
@@ -63,6 +64,25 @@ CONFIG_FILE = "config.yaml"
 #: Model, optimiser and log state for resuming (:func:`save_checkpoint`).
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = 2  # 2: data_info carries the instruction text of every task id
+#: What every checkpoint of :data:`CHECKPOINT_FORMAT` holds (its readers index them); a finished run's also
+#: holds ``summary``, its ``summary.json``.
+CHECKPOINT_KEYS: tuple[str, ...] = (
+    "step",
+    "finished",
+    "config",
+    "data_info",
+    "policy",
+    "ema_policy",
+    "objective",
+    "optimizer",
+    "scheduler",
+    "ema",
+    "sampler_rng",
+    "torch_rng",
+    "logs",
+    "skipped",
+    "train_seconds",
+)
 #: Training and evaluation scalars, columns :data:`METRICS_COLUMNS`.
 METRICS_FILE = "metrics.csv"
 METRICS_COLUMNS: tuple[str, ...] = ("step", "phase", "name", "value")
@@ -237,7 +257,7 @@ def load_checkpoint(path: str | Path) -> dict:
 
     Raises:
         FileNotFoundError: no file at ``path`` (a run directory is accepted and its checkpoint read).
-        ValueError: the file is not a tar-rl checkpoint of a known format.
+        ValueError: the file is not a tar-rl checkpoint of a known format, or lacks one of :data:`CHECKPOINT_KEYS`.
     """
     path = Path(path)
     if path.is_dir():
@@ -252,6 +272,10 @@ def load_checkpoint(path: str | Path) -> dict:
         raise ValueError(f"{path} is not a readable tar-rl checkpoint: {err}") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a tar-rl checkpoint of format {CHECKPOINT_FORMAT}")
+    missing = [key for key in CHECKPOINT_KEYS if key not in state]
+    if missing or not isinstance(state["config"], dict) or not isinstance(state["step"], int):
+        what = f"lacks {missing}" if missing else "holds no config or step"
+        raise ValueError(f"{path} is a tar-rl checkpoint of format {CHECKPOINT_FORMAT} that {what} (incomplete)")
     return state
 
 

@@ -11,6 +11,7 @@ from tar_rl.data import DemoDataset
 from ..suite import Suite
 from . import tasks as mw_tasks
 from .dataset import build_dataset, check_disjoint
+from .demos import ACTION_DIM
 from .evaluate import MAX_HORIZON, RolloutPool, evaluate
 
 __all__ = ["MetaWorldSuite"]
@@ -22,6 +23,7 @@ class MetaWorldSuite(Suite):
     name = "metaworld"
     max_horizon = MAX_HORIZON
     images = True
+    action_dim = ACTION_DIM
     sources = ("metaworld",)
     task_names = mw_tasks.TASKS
     instructions = mw_tasks.INSTRUCTIONS

@@ -20,6 +20,8 @@ from __future__ import annotations
 import functools
 from collections.abc import Iterable, Sequence
 
+from tar_rl.registry import did_you_mean
+
 __all__ = [
     "DIFFICULTY_GROUPS",
     "GROUPS",
@@ -161,8 +163,10 @@ def resolve_tasks(spec: str | Iterable[str]) -> tuple[str, ...]:
         else:
             unknown.append(item)
     if unknown or not chosen:
+        names = [*GROUPS, *(t[:-3] for t in TASKS)]
+        hints = "".join(did_you_mean(str(item).strip(), names) for item in unknown)
         raise ValueError(
-            f"unknown MetaWorld task or group {unknown or items!r}. Groups: {', '.join(GROUPS)}. "
+            f"unknown MetaWorld task or group {unknown or items!r}{hints}. Groups: {', '.join(GROUPS)}. "
             f"Tasks (the -v3 suffix is optional): {', '.join(t[:-3] for t in TASKS)}."
         )
     return tuple(sorted(chosen, key=_INDEX.__getitem__))

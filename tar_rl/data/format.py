@@ -63,7 +63,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
-from tar_rl.io import write_json_atomic
+from tar_rl.io import require_free_space, write_json_atomic
 
 from .checks import (
     DIGEST_FILE,
@@ -250,10 +250,14 @@ def write_dataset(root: str | os.PathLike, name: str, data: TensorDict, metadata
 
     Returns:
         The dataset folder ``root/name``.
+
+    Raises:
+        DiskFullError: the disk under ``root`` has no room for the data (checked before anything is written).
     """
     root = Path(root)
     final = root / name
     metadata = {**metadata, "keys": leaf_specs(data)}
+    require_free_space(root, sum(v.numel() * v.element_size() for v in data.values(True, True)), final)
     tmp = root / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         tmp.mkdir()

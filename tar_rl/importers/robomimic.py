@@ -92,7 +92,7 @@ def _read_array(demo, key: str, where: str, length: int | None) -> np.ndarray:
         )
     if not (np.issubdtype(value.dtype, np.number) or value.dtype == bool):
         raise DemoImportError(f"{where}: key {key!r} has non-numeric dtype {value.dtype}")
-    value = value.reshape(len(value), -1)
+    value = value.reshape(len(value), int(np.prod(value.shape[1:], dtype=np.int64)))  # [T, d], T = 0 included
     if length is not None and len(value) != length:
         raise DemoImportError(f"{where}: key {key!r} has {len(value)} steps, 'actions' has {length} (ragged arrays)")
     bad = ~np.isfinite(value.astype(np.float64))

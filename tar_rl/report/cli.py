@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from tar_rl.io import write_csv_atomic
+from tar_rl.errors import one_line
+from tar_rl.io import check_writable, write_csv_atomic
 from tar_rl.report.load import expand_run_dirs, load_run
 from tar_rl.report.plots import plot_group_bars, plot_success_vs_neps, plot_weights
 from tar_rl.report.stats import BASELINE, compare
@@ -45,8 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     (objective, policy, seed, overall success, 100 x Fast20, 100 x NEPS), notes on unfinished runs,
     the comparison pooled over seeds and the paired differences to ``uniform``; writes
     ``comparison.csv``, ``success_vs_neps.png``, ``group_success.png`` and ``weights_<run>.png`` for
-    each run with ``weights.csv`` into ``--out``. With no finished run it prints the runs, writes
-    only the weight figures and ends with a line saying so, returning 1.
+    each run with ``weights.csv`` into ``--out`` (checked writable first). With no finished run it prints the
+    runs, writes only the weight figures and ends with a line saying so, returning 1; with finished runs none of
+    which was evaluated (``eval.rollouts=0``) it says there is nothing to compare and returns 0.
 
     Args:
         argv: the arguments after ``report`` (default: ``sys.argv[1:]``).
@@ -62,7 +64,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         runs = [load_run(p) for p in expand_run_dirs(args.runs)]
     except ValueError as err:
-        raise SystemExit(f"tar-rl report: {err}") from None
+        raise SystemExit(one_line("tar-rl report", err)) from None
+    if any(r.finished or r.weights is not None for r in runs):  # something to write: checked before any is
+        try:
+            check_writable(out_dir)
+        except OSError as err:
+            raise SystemExit(
+                f"tar-rl report: cannot write to {out_dir} ({err}); choose a writable folder with --out"
+            ) from None
 
     print(f"{len(runs)} run(s):")
     _print_frame(runs_table(runs))
@@ -76,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             table = compare(runs)
         except ValueError as err:
-            raise SystemExit(f"tar-rl report: {err}") from None
+            raise SystemExit(one_line("tar-rl report", err)) from None
         print("\nComparison over seeds (mean ± std; success %, 100 x Fast20, 100 x NEPS; lower cost is better):")
         _print_frame(display_comparison(table))
         print(f"\nPaired differences to {BASELINE} over matched seeds (objective - {BASELINE}, overall):")
@@ -101,11 +110,13 @@ def main(argv: list[str] | None = None) -> int:
         )
     if written:
         print("\nwrote: " + ", ".join(str(p) for p in written))
-    if not any(r.finished for r in runs):
+    if not any(r.finished or r.not_evaluated for r in runs):
         print(
             f"tar-rl report: no finished run among the {len(runs)} run(s) of {' '.join(args.runs)}: nothing to "
             "compare; let the runs finish (run a stopped run's tar-rl train command again to resume it)",
             file=sys.stderr,
         )
         return 1
+    if not any(r.finished for r in runs):
+        print("nothing to compare: no run has an evaluation (evaluate a trained policy with tar-rl eval)")
     return 0

@@ -31,7 +31,10 @@ from tar_rl.runs import (
     WEIGHTS_FILE,
 )
 
-__all__ = ["Run", "expand_run_dirs", "load_run", "run_file"]
+__all__ = ["NOT_EVALUATED", "Run", "expand_run_dirs", "load_run", "run_file"]
+
+#: How the report names a run that finished training without an evaluation.
+NOT_EVALUATED = "finished without evaluation (eval.rollouts=0)"
 
 
 @dataclass
@@ -49,7 +52,9 @@ class Run:
             from the ``eval_rollouts.csv`` rows of the largest step; ``None`` without evaluation rows.
         metrics: ``metrics.csv`` (columns ``step, phase, name, value``; empty if not written yet).
         weights: ``weights.csv``, or ``None`` when the run recorded no weights.
-        finished: the run finished (``summary.json`` says so) and has final evaluation rows.
+        finished: the run finished (``summary.json`` says so) and has final evaluation rows: a run to compare.
+        not_evaluated: the run finished training without an evaluation (``eval.rollouts=0``): listed as
+            such, never compared (``finished`` is False).
         steps: training steps done (``summary.json``), ``None`` before the run finished.
         final_step: the training step of the final evaluation (largest ``step`` of the rollouts).
         git_commit: the commit the run was trained at (``summary.json``), ``None`` if unknown.
@@ -69,6 +74,7 @@ class Run:
     metrics: pd.DataFrame
     weights: pd.DataFrame | None
     finished: bool
+    not_evaluated: bool = False
     steps: int | None = None
     final_step: int | None = None
     git_commit: str | None = None
@@ -95,7 +101,20 @@ def _read_mapping(path: Path, parse, errors: tuple, what: str, kind: str) -> dic
 def _read_yaml(path: Path) -> dict:
     import yaml
 
-    return _read_mapping(path, yaml.safe_load, (yaml.YAMLError,), "run's config", "YAML mapping")
+    def parse(text: str):
+        try:
+            return yaml.safe_load(text)
+        except yaml.YAMLError as err:  # the parser's report spans lines (the context, the text, a caret)
+            raise ValueError(f"not valid YAML ({_yaml_problem(err)})") from None
+
+    return _read_mapping(path, parse, (ValueError,), "run's config", "YAML mapping")
+
+
+def _yaml_problem(err) -> str:
+    """A YAML parser's error in one line: the problem and where (``expected ',' or ']' at line 3, column 2``)."""
+    problem = getattr(err, "problem", None) or str(err).strip().splitlines()[0]
+    mark = getattr(err, "problem_mark", None)
+    return f"{problem} at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else problem
 
 
 def _read_summary(path: Path) -> dict:
@@ -221,7 +240,8 @@ def load_run(path: str | os.PathLike) -> Run:
     A directory with ``config.yaml`` (or ``summary.json``) is a run directory. A run without
     ``summary.json`` is still training (the recipe writes the summary last) and is loaded as unfinished,
     as is one whose summary says ``"finished": false`` or one without final evaluation rows; the reason
-    is in :attr:`Run.notes`. Files the run has are always checked.
+    is in :attr:`Run.notes`. A finished run trained with ``eval.rollouts=0`` has no evaluation rows and is
+    :attr:`Run.not_evaluated`. Files the run has are always checked.
 
     Args:
         path: a run directory.
@@ -248,9 +268,14 @@ def load_run(path: str | os.PathLike) -> Run:
         notes.append(f"unfinished: {SUMMARY_FILE} says finished: false")
     metrics = _read_metrics(path, finished)
     final, final_step, settings = _read_final(path, config)
+    not_evaluated = False
     if final is None and finished:
         finished = False
-        notes.append(f"unfinished: no final evaluation rows in {ROLLOUTS_FILE}")
+        if _config_get(config, "eval.rollouts") == 0:
+            not_evaluated = True
+            notes.append(f"{NOT_EVALUATED}: nothing to compare")
+        else:
+            notes.append(f"unfinished: no final evaluation rows in {ROLLOUTS_FILE}")
 
     steps = info.get("steps")
     if finished and steps is not None and final_step != steps:
@@ -274,6 +299,7 @@ def load_run(path: str | os.PathLike) -> Run:
         metrics=metrics,
         weights=weights,
         finished=finished,
+        not_evaluated=not_evaluated,
         steps=None if steps is None else int(steps),
         final_step=final_step,
         git_commit=info.get("git_commit"),

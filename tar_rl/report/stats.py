@@ -20,7 +20,7 @@ from typing import IO, Any
 import pandas as pd
 
 from tar_rl.metrics import DEFAULT_GROUP_ORDER, METRIC_COLUMNS, as_percent
-from tar_rl.report.load import Run
+from tar_rl.report.load import NOT_EVALUATED, Run
 
 __all__ = [
     "BASELINE",
@@ -166,7 +166,7 @@ def compare(runs: Sequence[Run], file: IO[str] | None = None) -> pd.DataFrame:
     done = [r for r in runs if r.finished]
     excluded = [r for r in runs if not r.finished]
     for run in excluded:
-        reason = "; ".join(n for n in run.notes if n.startswith("unfinished")) or "unfinished"
+        reason = "; ".join(n for n in run.notes if n.startswith(("unfinished", NOT_EVALUATED))) or "unfinished"
         print(f"note: {run.name} ({run.path}) is left out of the comparison: {reason}", file=out)
     if not done:
         raise ValueError("no finished run to compare" + (f" ({len(excluded)} unfinished)" if excluded else ""))

@@ -42,7 +42,7 @@ def runs_table(runs: Sequence[Run]) -> pd.DataFrame:
             "policy": run.policy,
             "seed": run.seed,
             "steps": "-" if run.steps is None else run.steps,
-            "status": "finished" if run.finished else "unfinished",
+            "status": "finished" if run.finished else "not evaluated" if run.not_evaluated else "unfinished",
         }
         overall = run_percent(run) if run.finished else {}
         for metric in METRIC_COLUMNS:

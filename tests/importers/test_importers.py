@@ -234,6 +234,11 @@ BAD = {
     ),
     "image key": (lambda d: None, {"obs_keys": "object,agentview_image"}, r"'obs/agentview_image'.*low-dimensional"),
     "empty filter": (lambda d: None, {"filter_key": "empty"}, r"filter 'empty'.*lists no demos"),
+    "empty demo": (  # every array of demo_2 with no steps: named as empty, before any reshape of its arrays
+        lambda d: d["demo_2"].update({key: value[:0] for key, value in d["demo_2"].items()}),
+        {},
+        r"demo 'demo_2'.*'actions' has no steps \(empty episode\)",
+    ),
     "unknown filter": (
         lambda d: None,
         {"filter_key": "nope"},
