@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from tar_rl.errors import one_line
 from tar_rl.io import write_csv_atomic
 from tar_rl.report.load import expand_run_dirs, load_run
 from tar_rl.report.plots import plot_group_bars, plot_success_vs_neps, plot_weights
@@ -62,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         runs = [load_run(p) for p in expand_run_dirs(args.runs)]
     except ValueError as err:
-        raise SystemExit(f"tar-rl report: {err}") from None
+        raise SystemExit(one_line("tar-rl report", err)) from None
 
     print(f"{len(runs)} run(s):")
     _print_frame(runs_table(runs))
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             table = compare(runs)
         except ValueError as err:
-            raise SystemExit(f"tar-rl report: {err}") from None
+            raise SystemExit(one_line("tar-rl report", err)) from None
         print("\nComparison over seeds (mean ± std; success %, 100 x Fast20, 100 x NEPS; lower cost is better):")
         _print_frame(display_comparison(table))
         print(f"\nPaired differences to {BASELINE} over matched seeds (objective - {BASELINE}, overall):")
