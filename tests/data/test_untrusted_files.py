@@ -8,8 +8,7 @@ from __future__ import annotations
 import json
 import shutil
 
-import h5py
-import numpy as np
+from data_helpers import robomimic_file
 from payload_helpers import pickle_payload, run
 
 from tar_rl.data import content_digest
@@ -26,22 +25,9 @@ OLD_FORMAT_FILES = (
 )
 
 
-def _hdf5(path):
-    """A robomimic-layout file of two demonstrations (3-d states, 2-d actions)."""
-    rng = np.random.default_rng(0)
-    with h5py.File(path, "w") as f:
-        f.create_group("data").attrs["env_args"] = json.dumps({"env_name": "Lift", "type": 1, "env_kwargs": {}})
-        for i, n in enumerate([6, 5]):
-            f[f"data/demo_{i}/obs/state"] = rng.normal(size=(n, 3))
-            f[f"data/demo_{i}/actions"] = rng.uniform(-1, 1, size=(n, 2))
-            f[f"data/demo_{i}/dones"] = np.r_[np.zeros(n - 1), 1].astype(np.int64)
-            f[f"data/demo_{i}/rewards"] = np.zeros(n)
-    return path
-
-
 def test_no_file_of_a_dataset_folder_runs_code(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    source = _hdf5(tmp_path / "lift.hdf5")
+    source = robomimic_file(tmp_path / "lift.hdf5")
     import_command = ["data", "import", "robomimic", str(source), "--obs-keys", "state", "--out"]
     assert run([*import_command, str(tmp_path / "made")]) is None
     (made,) = (tmp_path / "made").iterdir()
