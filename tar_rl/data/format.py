@@ -26,7 +26,7 @@ renamed into place only when complete. A folder that fails the checks on load (m
 unparsable metadata, missing storage files, a size that disagrees with the metadata, a file
 whose content differs from ``digest.json``: an edited metadata number, a flipped byte in a memmap,
 a NaN or Inf in an entry) raises :class:`~tar_rl.data.checks.DatasetError`; the builders remove such
-a folder and write it again. The content check reads every file once per load (about 10 ms for the
+a folder and write it again. The content check reads every file once per load (about 7 ms for the
 default job's 6 MB dataset, well under 1% of the job's start-up: ``benchmarks/bench_data.py --sections
 startup``). A folder without a digest is refused: :func:`seal_dataset` (``tar-rl data seal``) records
 one after the other checks pass, for a folder whose content its user trusts.
