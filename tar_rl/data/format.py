@@ -336,6 +336,7 @@ def _open(path: Path, sealed: bool) -> DemoDataset:
     """:func:`load_dataset`; with ``sealed=False`` the digest is neither needed nor read (:func:`seal_dataset`)."""
     if not path.is_dir():
         raise DatasetError(f"no dataset folder at {path}")
+    check_no_links(path)  # before reading any file: a linked metadata.json could be any file of the disk
     meta_path = path / METADATA_FILE
     if not meta_path.is_file():
         raise DatasetError(f"{meta_path} is missing (the build did not finish)")
@@ -345,7 +346,6 @@ def _open(path: Path, sealed: bool) -> DemoDataset:
         raise DatasetError(_version_message(path, version))
     check_metadata(meta_path, metadata)
     total = metadata["total_steps"]
-    check_no_links(path)
     files = None
     if sealed:
         if not (path / DIGEST_FILE).exists():
@@ -358,7 +358,7 @@ def _open(path: Path, sealed: bool) -> DemoDataset:
     storage_dir = path / STORAGE_DIR
     if files is not None:
         check_listed(path, files, [meta_path, *(storage_file(storage_dir, name) for name in specs)])
-    # Before mapping: a memory map over a truncated file would be silently zero-extended.
+    # Before mapping: each file holds exactly its entry's bytes (a truncated or padded file is named, not mapped).
     check_storage_files(storage_dir, specs, total)
     data = TensorDict(batch_size=[total])
     for name, (dtype, shape) in specs.items():
