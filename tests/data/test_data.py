@@ -453,17 +453,18 @@ def test_task_ids_outside_task_names_are_refused(built, tmp_path):
         load_dataset(copy)
 
 
-def test_a_linked_file_is_refused(built, tmp_path):
+@pytest.mark.parametrize("linked", ["buffer/storage/observation.memmap", "metadata.json"])
+def test_a_linked_file_is_refused(built, tmp_path, linked):
     # A symbolic link could point at any file of the disk; the digest would follow it.
     _, ds = built
     copy = tmp_path / "linked"
     shutil.copytree(ds.path, copy)
-    f = copy / "buffer" / "storage" / "observation.memmap"
-    elsewhere = tmp_path / "elsewhere.memmap"
+    f = copy / linked
+    elsewhere = tmp_path / f.name
     f.rename(elsewhere)
     f.symlink_to(elsewhere)
     _reseal(copy)
-    with pytest.raises(DatasetError, match=r"observation\.memmap is a symbolic link"):
+    with pytest.raises(DatasetError, match=rf"{f} is a symbolic link"):
         load_dataset(copy)
 
 
