@@ -177,7 +177,7 @@ def trained_policy(names, demos: int, train_steps: int, cache: Path, seed: int =
     policy = build_policy({"name": "mlp", "hidden": [256, 256]}, info).actor
     weights = cache / f"mlp-{ds.path.name}-{train_steps}-s{seed}.pt"
     if weights.exists():
-        policy.load_state_dict(torch.load(weights))
+        policy.load_state_dict(torch.load(weights, weights_only=True))
         return policy
     data = ds.data
     obs = data["observation"].clone()

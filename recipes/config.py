@@ -132,10 +132,12 @@ class DataConfig:
     Attributes:
         tasks: MetaWorld task and group names (``easy``, ``medium``, ``hard``, ``very_hard``,
             ``mt10``, ``mt50``); on the command line ``data.tasks=[reach,push]`` or ``data.tasks=[mt10]``.
+            With ``path``, left at this default it reads as the dataset's tasks; set, it must name them.
         n_demos: successful demonstrations per task.
         seed: base seed of the demonstration variations (must differ from ``eval.seed``'s range).
         root: folder of the dataset cache (a dataset is reused when its settings match).
-        slice_len: segment length ``L``.
+        slice_len: segment length ``L``, at most the dataset's longest episode (checked once the dataset is
+            loaded: a longer segment would be padded in every batch).
         batch_segments: segments per batch ``B`` (a batch holds ``B * L`` steps).
         chunk_horizon: ``H`` of the stored ``action_chunk`` (for chunked heads).
         history: ``K`` of the stored ``observation_history`` (for heads reading past observations).
@@ -145,8 +147,8 @@ class DataConfig:
         path: an existing dataset folder to train on instead of collecting one: written by
             ``tar-rl data import`` (robomimic / LIBERO HDF5) or a MetaWorld dataset of
             ``data.root``. Its tasks, chunk horizon, history and image size are the dataset's
-            (``tasks``, ``n_demos``, ``seed``, ``chunk_horizon``, ``history`` and ``image_size``
-            above are then not used). Imported demonstrations have no simulator here (train them
+            (``n_demos``, ``seed``, ``chunk_horizon``, ``history`` and ``image_size`` above are then
+            not used; ``tasks``, if set, must be its tasks). Imported demonstrations have no simulator here (train them
             with ``eval.rollouts=0``), except LIBERO files with ``suite=libero``.
         suite: the simulator demonstrations are collected in and policies evaluated on:
             ``metaworld`` or ``dm_control`` (``point_mass-easy``, ``reacher-easy`` or the group

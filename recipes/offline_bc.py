@@ -23,8 +23,10 @@ Resume: running the same command again continues from ``checkpoint.pt`` with the
 order (the sampler's generator state), the same schedule and control RNG (the objective's state),
 the same optimiser, LR schedule and EMA state, the logs as they were at that step and each rank's
 logging window (the running sums since the last metrics row); it reaches the same final weights and
-writes the same log files, byte for byte, as an uninterrupted run. A finished run is reported and
-skipped, so a sweep that was stopped half way is restarted with the same command.
+writes the same log files, byte for byte, as an uninterrupted run. It resumes on the data it trained on
+only: the checkpoint records the dataset's content digest, and a dataset whose content differs is
+refused, named. A finished run is reported and skipped, so a sweep that was stopped half way is
+restarted with the same command.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from tar_rl import distributed
 from tar_rl.collectors.suites import SUITES
+from tar_rl.data import DemoDataset
 from tar_rl.errors import (
     DiskFullError,
     RunInterrupted,
@@ -86,7 +89,7 @@ from .errors import ConfigError, TrainingError
 from .overrides import check_overrides
 from .record import demo_episodes, record_weights
 from .rundir import check_resumable, identity_differences, last_checkpoint, prepare_run_dir, run_name
-from .validate import Job, resolve_config, validate
+from .validate import Job, check_slice_len, resolve_config, validate
 
 __all__ = ["Trainer", "hydra_main", "train"]
 
@@ -136,6 +139,9 @@ class Trainer:
         self.heldout = diagnose.heldout_dataset(cfg, job.train_tasks, progress=self.progress)
         if dist.main:
             dist.barrier()
+        if resume is not None:
+            _check_same_data(run_dir, resume, self.dataset)
+        check_slice_len(cfg.data.slice_len, self.dataset)
         if cfg.eval.rollouts:
             SUITES[job.suite].check_dataset(self.dataset, cfg.eval.seed, cfg.eval.rollouts)
         self.info = DataInfo.from_metadata(self.dataset.metadata)
@@ -240,6 +246,7 @@ class Trainer:
                 "summary": summary,
                 "config": config_dict(self.cfg),
                 "data_info": self.info.to_dict(),
+                "data_digest": self.dataset.digest,
                 "policy": self.policy.actor.state_dict(),
                 "ema_policy": ema.module.state_dict() if ema is not None else None,
                 "objective": self.objective.state_dict(),
@@ -444,6 +451,7 @@ class Trainer:
             "final_eval_seconds": self.eval_seconds,
             "world_size": self.dist.world,
             "config": config_dict(cfg),
+            "data": {"path": str(self.dataset.path), "digest": self.dataset.digest},
             "git_commit": self.commit,
             "machine": machine(),
             "versions": {"torch": torch.__version__, **self.dataset.metadata["versions"]},
@@ -478,6 +486,18 @@ def _complete(run_dir: Path, state: dict, settings: TrainConfig) -> None:
     final = [row for row in logs.rollouts if row["step"] == state["step"]]
     table = summarize(pd.DataFrame(final)) if final else None
     _print_results(run_dir, settings, table, state["skipped"])
+
+
+def _check_same_data(run_dir: Path, state: dict, dataset: DemoDataset) -> None:
+    """A run resumes on the data it trained on: the dataset's content digest must be the one its checkpoint
+    records (a checkpoint that records none is checked by its data description alone, in ``Trainer._restore``)."""
+    recorded = state.get("data_digest")
+    if recorded is not None and recorded != dataset.digest:
+        raise ConfigError(
+            f"{run_dir}: the dataset {dataset.path} differs from the data the run trained on (its content digest "
+            f"is {dataset.digest}, the checkpoint records {recorded}); resume on that data, or start a new run in "
+            "another run_dir"
+        )
 
 
 def _agree_across_ranks(cfg: TrainConfig, dist: distributed.Dist) -> None:

@@ -105,13 +105,14 @@ def started_config(run_dir: Path) -> dict | None:
     path = run_dir / "config.yaml"
     if not path.exists():
         return None
-    from omegaconf import OmegaConf
+    import yaml
 
     try:
-        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+        # YAML's safe loader: plain values only (no Python tags), and no interpolation of ${...}.
+        saved = yaml.safe_load(path.read_text())
         if not isinstance(saved, dict):
             raise ValueError(f"it holds a {type(saved).__name__}, not a config")
-    except Exception as err:  # OmegaConf raises many kinds for a damaged YAML file
+    except (OSError, UnicodeDecodeError, ValueError, yaml.YAMLError) as err:
         first = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise ConfigError(f"{path} cannot be read ({first}); remove it or choose another run_dir") from err
     return saved

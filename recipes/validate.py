@@ -17,10 +17,10 @@ from tar_rl.policies import DataInfo, Policy
 
 from . import diagnose, post_training
 from .builders import given_dataset, make_objective, make_policy, torch_device
-from .config import ObjectiveConfig, OptimConfig, TrainConfig, typed_config
+from .config import DEFAULT_TASKS, ObjectiveConfig, OptimConfig, TrainConfig, typed_config
 from .errors import ConfigError
 
-__all__ = ["INT_SETTINGS", "MAX_LR", "MAX_STEPS", "Job", "int_rule", "resolve_config", "validate"]
+__all__ = ["INT_SETTINGS", "MAX_LR", "MAX_STEPS", "Job", "check_slice_len", "int_rule", "resolve_config", "validate"]
 
 #: The most optimiser steps a job may ask for (the paper trains 100K; a billion steps of the smallest head take
 #: weeks on a GPU): a larger count is a typo, refused before work rather than found out days later.
@@ -134,6 +134,8 @@ def validate(config: dict) -> Job:
     _check_objective(cfg.objective)
     suite, given, tasks = _check_suite_and_tasks(cfg)
     _check_numbers(cfg, suite)
+    if given is not None:
+        check_slice_len(cfg.data.slice_len, given)
     torch_device(cfg.device)
     _check_diagnostics(cfg)
     _check_seeds(cfg, suite, given)
@@ -202,6 +204,8 @@ def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset 
             f"data.path={data.path} holds {given.source} demonstrations of {given.tasks}, which have no "
             f"simulator here (evaluation runs {sorted(SUITES)}): set eval.rollouts=0 to train without evaluation"
         )
+    if given is not None:
+        _check_given_tasks(data, suite, given)
     train_tasks = tuple(given.tasks) if given is not None else _resolve_tasks(suite, "data.tasks", data.tasks)
     eval_tasks = ()
     if ev.rollouts:
@@ -214,6 +218,33 @@ def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset 
     if data.image_size and suite is not None and not suite.images:
         raise ConfigError(f"data.image_size={data.image_size}: the {suite_name} suite has no image observations")
     return suite, given, {"train_tasks": train_tasks, "eval_tasks": eval_tasks, "suite": suite_name}
+
+
+def _check_given_tasks(data, suite: Suite | None, given: DemoDataset) -> None:
+    """``data.tasks`` left at its default, or naming the tasks of the ``data.path`` dataset (which trains on its
+    own tasks): resolved by the suite (its groups included), or by name for a dataset no suite here has."""
+    if list(data.tasks) == list(DEFAULT_TASKS):
+        return
+    named = _resolve_tasks(suite, "data.tasks", data.tasks) if suite is not None else tuple(data.tasks)
+    if set(named) != set(given.tasks):
+        raise ConfigError(
+            f"data.tasks={list(data.tasks)} disagrees with the tasks of data.path={data.path} ({given.tasks}): a "
+            "data.path dataset trains on its own tasks; leave data.tasks out or set it to them"
+        )
+
+
+def check_slice_len(slice_len: int, dataset: DemoDataset) -> None:
+    """``data.slice_len`` at most the longest episode of the dataset (a longer one pads every segment).
+
+    Raises:
+        ConfigError: naming the setting, the dataset and the allowed range.
+    """
+    longest = dataset.longest_episode
+    if slice_len > longest:
+        raise ConfigError(
+            f"data.slice_len={slice_len} is longer than the longest episode of the dataset {dataset.path} "
+            f"({longest} steps), so every segment would be padded; choose data.slice_len between 1 and {longest}"
+        )
 
 
 def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:

@@ -8,7 +8,8 @@ Sub-commands:
 * ``tar-rl report RUN_DIR...``: compare finished runs (tables and figures).
 * ``tar-rl data import robomimic FILE... --obs-keys a,b,c``: robomimic/LIBERO HDF5 demonstrations into a
   dataset folder; ``tar-rl data import lerobot FOLDER``: a LeRobot dataset on local disk;
-  ``tar-rl data info PATH``: a dataset folder's episodes, steps, entries and tasks.
+  ``tar-rl data info PATH``: a dataset folder's episodes, steps, entries and tasks; ``tar-rl data seal PATH``:
+  record the content digest of a dataset folder that has none.
 * ``tar-rl demo``: a short demonstration of the objective on toy data.
 
 An error the user can cause or meet ends in one line naming what happened, where and what to do;
@@ -39,7 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--workers", type=int, help="evaluation processes (default: every core)")
     ev.add_argument("--out", help="CSV of the rollouts (default: eval-<seed>.csv beside the checkpoint)")
     ev.add_argument("--no-progress", action="store_true", help="no progress bar")
-    data = commands.add_parser("data", help="import demonstrations, describe a dataset folder")
+    data = commands.add_parser("data", help="import demonstrations, describe or seal a dataset folder")
     data_commands = data.add_subparsers(dest="data_command", required=True)
     imp = data_commands.add_parser("import", help="import demonstrations from another format")
     formats = imp.add_subparsers(dest="format", required=True, metavar="FORMAT")
@@ -56,6 +57,10 @@ def _parser() -> argparse.ArgumentParser:
     info = data_commands.add_parser("info", help="episodes, steps, entries, action range and tasks of a dataset")
     info.add_argument("path", help="a dataset folder (holding metadata.json and buffer/)")
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
+    seal = data_commands.add_parser(
+        "seal", help="record the content digest of a dataset folder that has none (one whose content you trust)"
+    )
+    seal.add_argument("path", help="a dataset folder without digest.json")
     demo = commands.add_parser("demo", help="train a small policy with uniform and TAR weighting on toy data")
     demo.add_argument("--steps", type=int, default=600, help="optimiser steps per weighting (default 600)")
     demo.add_argument(
@@ -130,14 +135,19 @@ def _data_command(args: argparse.Namespace) -> int:
         return 0
     import json
 
-    from tar_rl.data import DatasetError
+    from tar_rl.data import DatasetError, seal_dataset
     from tar_rl.importers import dataset_info, format_info
 
+    command = f"tar-rl data {args.data_command}"
     try:
+        if args.data_command == "seal":
+            dataset = seal_dataset(args.path)
+            print(f"{dataset.path}: recorded its content digest; later loads check its files against it")
+            return 0
         info = dataset_info(args.path)
     except DatasetError as err:
         if debug_mode():
             raise
-        raise SystemExit(one_line("tar-rl data info", err)) from None
+        raise SystemExit(one_line(command, err)) from None
     print(json.dumps(info, indent=2) if args.json else format_info(info))
     return 0

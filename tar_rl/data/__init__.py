@@ -4,6 +4,7 @@ importers (``tar_rl.importers``) write datasets in it."""
 
 from .checks import (
     DIGEST_FILE,
+    DTYPES,
     METADATA_FILE,
     DatasetError,
     check_content,
@@ -19,6 +20,7 @@ from .format import (
     clean_temp_siblings,
     load_dataset,
     package_version,
+    seal_dataset,
     steps_tensordict,
     write_dataset,
 )
@@ -27,6 +29,7 @@ from .sampler import EPISODE_LENGTH_KEY, VALID_KEY, SegmentSampler
 __all__ = [
     "BUFFER_DIR",
     "DIGEST_FILE",
+    "DTYPES",
     "EPISODE_LENGTH_KEY",
     "FORMAT_VERSION",
     "METADATA_FILE",
@@ -42,6 +45,7 @@ __all__ = [
     "load_dataset",
     "package_version",
     "positive_int",
+    "seal_dataset",
     "steps_tensordict",
     "write_dataset",
 ]

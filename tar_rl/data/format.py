@@ -1,27 +1,35 @@
-"""The dataset format: demonstrations on disk as a TorchRL replay buffer plus a metadata file.
+"""The dataset format: demonstrations on disk as raw arrays plus a metadata file, read into a TorchRL replay buffer.
 
-A dataset folder holds one row per environment step in a ``TensorDictReplayBuffer`` over a
-``LazyMemmapStorage`` under ``<folder>/buffer`` (written with ``rb.dumps``; ``rb.loads`` reads it back
-in place, without copying) and ``metadata.json`` beside it describing the content. A suite's dataset
-builder (e.g. :mod:`tar_rl.collectors.metaworld.dataset`) or an importer (:mod:`tar_rl.importers`) turns
-episode-contiguous step arrays into the stored ``[N]`` TensorDict with :func:`steps_tensordict` and
-writes the folder crash-safely with :func:`write_dataset`; :func:`load_dataset` opens any of them.
+A dataset folder holds one row per environment step: each entry of the stored ``[N]`` TensorDict is one
+file of raw bytes (C order, little-endian) under ``<folder>/buffer/storage``, and ``metadata.json`` beside
+it describes the content, each entry's element type and per-step shape included (``keys``). A suite's
+dataset builder (e.g. :mod:`tar_rl.collectors.metaworld.dataset`) or an importer (:mod:`tar_rl.importers`)
+turns episode-contiguous step arrays into that TensorDict with :func:`steps_tensordict` and writes the
+folder crash-safely with :func:`write_dataset`; :func:`load_dataset` opens any of them as a
+``TensorDictReplayBuffer`` over a ``TensorStorage`` of the files' memory maps (no copy).
 
 Layout of one dataset folder::
 
     <name>/
-        buffer/              rb.dumps(): storage/ (memmaps), storage_metadata.json, ...
+        buffer/storage/      one <entry>.memmap per stored entry (next.reward: next/reward.memmap)
         metadata.json        the description of the content
         digest.json          written last: the SHA-256 and size of every other file of the folder
 
+Nothing in a dataset folder is code: the loader parses the two JSON files and maps the arrays the
+metadata names (element types from a fixed list, names of letters, digits and ``_``, exact file sizes,
+no symbolic links); it unpickles nothing (``docs/security.md``). Format versions before 4 were
+written with TorchRL's ``rb.dumps``, whose folder holds a pickled file that ``rb.loads`` unpickles:
+they are refused, with how to build them again.
+
 Crash safety: a dataset is written in a temporary sibling folder ``.<name>.tmp-<pid>-<rand>`` and
 renamed into place only when complete. A folder that fails the checks on load (missing or
-unparsable metadata, missing storage files, a length that disagrees with the metadata, a file
-whose content differs from ``digest.json``: an edited metadata number, a flipped byte in a memmap)
-raises :class:`~tar_rl.data.checks.DatasetError`; the builders remove such a folder and write it again.
-The content check reads every file once per load (about 10 ms for the default job's 6 MB dataset,
-well under 1% of the job's start-up: ``benchmarks/bench_data.py --sections startup``). A folder without
-a digest gets one on its first load (trust on first use).
+unparsable metadata, missing storage files, a size that disagrees with the metadata, a file
+whose content differs from ``digest.json``: an edited metadata number, a flipped byte in a memmap,
+a NaN or Inf in an entry) raises :class:`~tar_rl.data.checks.DatasetError`; the builders remove such
+a folder and write it again. The content check reads every file once per load (about 7 ms for the
+default job's 6 MB dataset, well under 1% of the job's start-up: ``benchmarks/bench_data.py --sections
+startup``). A folder without a digest is refused: :func:`seal_dataset` (``tar-rl data seal``) records
+one after the other checks pass, for a folder whose content its user trusts.
 
 Keys per step (``N`` steps, observation size ``D``, action size ``A``, chunk horizon ``H``):
 
@@ -61,7 +69,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDict
-from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer, TensorStorage
 
 from tar_rl.io import require_free_space, write_json_atomic
 
@@ -69,13 +77,20 @@ from .checks import (
     DIGEST_FILE,
     METADATA_FILE,
     DatasetError,
+    array_specs,
     check_content,
+    check_ids,
+    check_listed,
+    check_metadata,
+    check_no_links,
     check_storage_files,
-    content_digest,
-    dtype_name,
+    check_values,
+    data_digest,
     key_name,
     leaf_specs,
+    read_json,
     seal,
+    storage_file,
 )
 from .sampler import SegmentSampler
 
@@ -88,12 +103,15 @@ __all__ = [
     "clean_temp_siblings",
     "load_dataset",
     "package_version",
+    "seal_dataset",
     "steps_tensordict",
     "write_dataset",
 ]
 
-FORMAT_VERSION = 3  # 2: observation_history; 3: task_names and source in every dataset's metadata
+# 2: observation_history; 3: task_names and source in every dataset's metadata; 4: raw arrays, no pickled file
+FORMAT_VERSION = 4
 BUFFER_DIR = "buffer"
+STORAGE_DIR = f"{BUFFER_DIR}/storage"  # the arrays' folder inside a dataset folder
 
 
 def package_version(dist: str) -> str | None:
@@ -238,9 +256,9 @@ def clean_temp_siblings(root: Path, name: str) -> None:
 def write_dataset(root: str | os.PathLike, name: str, data: TensorDict, metadata: dict) -> Path:
     """Write ``data`` and ``metadata`` as the dataset folder ``root/name``, crash-safely.
 
-    The buffer is written in a temporary sibling folder, then ``metadata.json``, then ``digest.json``
-    (the content digest of the other files), then the folder is renamed into place. If another process completed
-    ``root/name`` first, its folder is kept; an incomplete one there is replaced.
+    Each entry's raw bytes are written in a temporary sibling folder, then ``metadata.json``, then
+    ``digest.json`` (the content digest of the other files), then the folder is renamed into place. If
+    another process completed ``root/name`` first, its folder is kept; an incomplete one there is replaced.
 
     Args:
         root: the parent folder (must exist).
@@ -261,14 +279,13 @@ def write_dataset(root: str | os.PathLike, name: str, data: TensorDict, metadata
     tmp = root / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         tmp.mkdir()
-        buffer_dir = tmp / BUFFER_DIR
-        storage = LazyMemmapStorage(data.shape[0], scratch_dir=buffer_dir / "storage")
-        rb = TensorDictReplayBuffer(storage=storage)
-        rb.extend(data)
-        rb.dumps(buffer_dir)
-        del rb, storage
+        for key, value in data.items(True, True):
+            file = storage_file(tmp / STORAGE_DIR, key_name(key))
+            file.parent.mkdir(parents=True, exist_ok=True)
+            # The bytes of the C-order array (a view as bytes: any element type, bool and bfloat16 included).
+            value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tofile(file)
         write_json_atomic(metadata, tmp / METADATA_FILE)
-        write_json_atomic(content_digest(tmp), tmp / DIGEST_FILE)  # last: over everything above
+        seal(tmp)  # last: over everything above
         try:
             os.rename(tmp, final)
         except OSError:
@@ -287,61 +304,92 @@ def write_dataset(root: str | os.PathLike, name: str, data: TensorDict, metadata
 
 
 def load_dataset(path: str | os.PathLike) -> DemoDataset:
-    """Open the dataset folder ``path`` (memory-mapped, no copy).
+    """Open the dataset folder ``path`` (memory-mapped, no copy), after checking all of it.
 
-    Every file is checked against ``digest.json`` (its size and SHA-256); a folder without one
-    (written before datasets had a digest) gets it now, after the other checks pass.
+    Checked, in this order and before any array is mapped: the metadata (JSON) and its format version,
+    the content digest (every file's size and SHA-256 against ``digest.json``; every file read is listed
+    there), the stored entries the metadata names (element types, shapes, exact file sizes, no symbolic
+    links); then the values (finite numbers, bools of 0 or 1). Nothing is written.
 
     Raises:
-        DatasetError: the folder is missing, its metadata is missing or unparsable, a storage
-            file is missing or has the wrong size, the stored length disagrees with the
-            metadata, or a file differs from the content digest (the message names the folder).
+        DatasetError: the folder is missing, has no content digest, is of another format version, or
+            fails a check (the message names the folder or file, in one line).
+    """
+    return _open(Path(path), sealed=True)
+
+
+def seal_dataset(path: str | os.PathLike) -> DemoDataset:
+    """Record the content digest of a dataset folder that has none, after every other check of
+    :func:`load_dataset` passes: for a folder whose content its user trusts as it is (``tar-rl data seal``).
+
+    Raises:
+        DatasetError: the folder already has a digest, or fails a check.
     """
     path = Path(path)
+    if (path / DIGEST_FILE).exists():
+        raise DatasetError(
+            f"{path} already has a content digest ({DIGEST_FILE}); to record a new one (after editing the folder "
+            f"on purpose), remove {path / DIGEST_FILE} first"
+        )
+    _open(path, sealed=False)
+    seal(path)
+    return load_dataset(path)
+
+
+def _open(path: Path, sealed: bool) -> DemoDataset:
+    """:func:`load_dataset`; with ``sealed=False`` the digest is neither needed nor read (:func:`seal_dataset`)."""
     if not path.is_dir():
         raise DatasetError(f"no dataset folder at {path}")
+    check_no_links(path)  # before reading any file: a linked metadata.json could be any file of the disk
     meta_path = path / METADATA_FILE
     if not meta_path.is_file():
         raise DatasetError(f"{meta_path} is missing (the build did not finish)")
-    try:
-        metadata = json.loads(meta_path.read_text())
-        total = int(metadata["total_steps"])
-        version = metadata["format_version"]
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise DatasetError(f"{meta_path} cannot be read: {err}") from err
+    metadata = read_json(meta_path, "dataset metadata")
+    version = metadata.get("format_version")
     if version != FORMAT_VERSION:
-        raise DatasetError(f"{path} has format version {version!r}, this tar-rl reads {FORMAT_VERSION}")
-    buffer_dir = path / BUFFER_DIR
-    storage_meta = buffer_dir / "storage" / "storage_metadata.json"
-    if not storage_meta.is_file():
-        raise DatasetError(f"{storage_meta} is missing")
-    try:
-        stored_len = int(json.loads(storage_meta.read_text())["len"])
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise DatasetError(f"{storage_meta} cannot be read: {err}") from err
-    if stored_len != total:
-        raise DatasetError(f"the storage holds {stored_len} steps, the metadata says {total}")
-    # Before opening: a memory map over a truncated file would be silently zero-extended.
-    check_storage_files(buffer_dir / "storage", metadata, total)
-    sealed = (path / DIGEST_FILE).exists()
+        raise DatasetError(_version_message(path, version))
+    check_metadata(meta_path, metadata)
+    total = metadata["total_steps"]
+    files = None
     if sealed:
-        check_content(path)
-    try:
-        storage = LazyMemmapStorage(total, scratch_dir=buffer_dir / "storage", existsok=True)
-        rb = TensorDictReplayBuffer(storage=storage)
-        rb.loads(buffer_dir)
-    except Exception as err:  # torchrl/tensordict raise many kinds for missing or truncated memmaps
-        raise DatasetError(f"the storage in {buffer_dir} cannot be loaded: {type(err).__name__}: {err}") from err
-    if len(rb) != total:
-        raise DatasetError(f"the storage holds {len(rb)} steps, the metadata says {total}")
-    stored = {key_name(k): v for k, v in rb.storage._storage.items(True, True)}
-    for name, spec in metadata["keys"].items():
-        value = stored.get(name)
-        if value is None or list(value.shape) != [total, *spec["shape"]] or dtype_name(value.dtype) != spec["dtype"]:
-            raise DatasetError(f"storage entry {name!r} does not match the metadata {spec}")
-    if not sealed:
-        seal(path)
-    return DemoDataset(path, rb, metadata)
+        if not (path / DIGEST_FILE).exists():
+            raise DatasetError(
+                f"{path} has no content digest ({DIGEST_FILE}), so its files cannot be checked: if you trust its "
+                f"content as it is, record one with `tar-rl data seal {path}`"
+            )
+        files = check_content(path)
+    specs = array_specs(metadata)
+    storage_dir = path / STORAGE_DIR
+    if files is not None:
+        check_listed(path, files, [meta_path, *(storage_file(storage_dir, name) for name in specs)])
+    # Before mapping: each file holds exactly its entry's bytes (a truncated or padded file is named, not mapped).
+    check_storage_files(storage_dir, specs, total)
+    data = TensorDict(batch_size=[total])
+    for name, (dtype, shape) in specs.items():
+        numel = total * int(np.prod(shape, dtype=np.int64))
+        # A private map (shared=False): the file is read lazily and never written, whatever is done to the tensor.
+        value = torch.from_file(str(storage_file(storage_dir, name)), shared=False, size=numel, dtype=dtype)
+        value = value.reshape(total, *shape)
+        check_values(path, name, value)
+        data.set(tuple(name.split(".")), value)
+    check_ids(path, data, len(metadata["task_names"]))
+    arrays = None
+    if files is not None:
+        arrays = {name: files[storage_file(Path(STORAGE_DIR), name).as_posix()]["sha256"] for name in specs}
+    buffer = TensorDictReplayBuffer(storage=TensorStorage(data))
+    return DemoDataset(path, buffer, metadata, data_digest(metadata, arrays) if arrays is not None else None)
+
+
+def _version_message(path: Path, version) -> str:
+    if isinstance(version, int) and not isinstance(version, bool) and version < FORMAT_VERSION:
+        return (
+            f"{path} is a dataset of format version {version}, which this tar-rl no longer reads (its folder holds "
+            "a pickled file, which could run code): build it again (`tar-rl train` collects a suite's "
+            "demonstrations again in a new folder; run the same `tar-rl data import ...` again for imported ones)"
+        )
+    if isinstance(version, int) and not isinstance(version, bool):
+        return f"{path} is a dataset of format version {version}, newer than this tar-rl reads ({FORMAT_VERSION})"
+    return f"{path / METADATA_FILE}: format_version is {version!r}, not a dataset format version"
 
 
 class DemoDataset:
@@ -349,14 +397,19 @@ class DemoDataset:
 
     Attributes:
         path: the dataset folder.
-        buffer: the ``TensorDictReplayBuffer`` (``LazyMemmapStorage`` under ``path/buffer``).
+        buffer: the ``TensorDictReplayBuffer`` (a ``TensorStorage`` of the arrays under ``path/buffer/storage``,
+            mapped privately: the files are never written).
         metadata: the parsed ``metadata.json``.
+        digest: the identity of the content (:func:`~tar_rl.data.checks.data_digest`: ``sha256:...``), which a
+            run records so that it resumes on the same data only; ``None`` while the folder has no content
+            digest (inside :func:`seal_dataset` only).
     """
 
-    def __init__(self, path: Path, buffer: TensorDictReplayBuffer, metadata: dict):
+    def __init__(self, path: Path, buffer: TensorDictReplayBuffer, metadata: dict, digest: str | None = None):
         self.path = Path(path)
         self.buffer = buffer
         self.metadata = metadata
+        self.digest = digest
 
     def __len__(self) -> int:
         """Number of stored steps."""
@@ -373,9 +426,15 @@ class DemoDataset:
     def data(self) -> TensorDict:
         """All stored steps as one ``[N]`` TensorDict.
 
-        Its tensors are views of the on-disk memory maps: read them, clone before modifying.
+        Its tensors are views of the private memory maps of the files: writing to them changes this
+        process's copy only (clone before modifying).
         """
         return self.buffer[:]
+
+    @property
+    def longest_episode(self) -> int:
+        """The number of steps of the longest episode."""
+        return int(torch.bincount(self.data["episode"]).max())
 
     @property
     def tasks(self) -> list[str]:

@@ -6,7 +6,7 @@ from collections.abc import Iterable, Iterator
 
 import torch
 from tensordict import TensorDict
-from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer, TensorStorage
+from torchrl.data import SliceSampler, TensorDictReplayBuffer, TensorStorage
 
 from .checks import positive_int
 
@@ -64,7 +64,7 @@ class SegmentSampler:
     (``_OneGatherSliceSampler``).
 
     Args:
-        storage: the dataset's ``LazyMemmapStorage``.
+        storage: the dataset's ``TensorStorage`` (or any filled ``TensorStorage``, a ``LazyMemmapStorage`` too).
         batch_segments: ``B``.
         slice_len: ``L``.
         keys: the entries to sample (nested keys as tuples); default all. ``"episode"`` is
@@ -75,7 +75,7 @@ class SegmentSampler:
 
     def __init__(
         self,
-        storage: LazyMemmapStorage,
+        storage: TensorStorage,
         batch_segments: int,
         slice_len: int,
         keys: Iterable | None = None,

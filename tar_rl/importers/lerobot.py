@@ -14,8 +14,12 @@ Two sources are read, both mapped onto TorchRL's canonical VLA keys first
   read with pandas (pyarrow); the ``task`` instruction of each frame is joined from
   ``task_index``;
 * the memory-mapped copy that TorchRL's ``LeRobotExperienceReplay(repo_id, root=ROOT,
-  download=True)`` leaves in ``ROOT/<repo_id with / as _>``, which
-  ``LeRobotExperienceReplay(..., download=False)`` reads: it is opened that way here.
+  download=True)`` leaves in ``ROOT/<repo_id with / as _>`` (tensordict's memmap layout: a
+  ``meta.json`` per folder naming each entry's element type and shape, one ``<entry>.memmap`` of
+  raw bytes per tensor, the instructions as JSON text in their folder's ``meta.json``). It is read
+  here from those files, not through tensordict's ``load_memmap`` (which unpickles a field stored
+  as ``pickle.pkl``): element types from a fixed list, entry names of letters, digits, ``_`` and
+  ``-``, exact file sizes, no symbolic links; a pickled field or any other kind of entry is refused.
 
 Mapping (LeRobot column -> TorchRL canonical key -> tar-rl entry): the chosen state columns
 (default ``observation.state``; several are concatenated in the order given) -> ``observation``;
@@ -40,10 +44,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from tar_rl import data as _data
 from tar_rl.importers.common import (
@@ -138,8 +144,6 @@ def _read_folder(path: Path, columns: list[str]):
         out["task"] = [tasks[i] for i in index.tolist()]
     elif "task" in frames:
         out["task"] = [str(t) for t in frames["task"]]
-    import torch
-
     columns_td = {k: (v if isinstance(v, list) else torch.from_numpy(np.array(v))) for k, v in out.items()}
     return lerobot_columns_to_tensordict(columns_td), {"format": version, "fps": info.get("fps")}
 
@@ -174,15 +178,87 @@ def _stack(series, column: str, episodes: np.ndarray, path: Path) -> np.ndarray:
     return np.stack([np.asarray(v, dtype=np.float64).reshape(-1) for v in values]) if values else np.zeros((0, 1))
 
 
+# tensordict's own entries in a memmap folder's meta.json, beside the stored keys (not read).
+_TD_SETTINGS = ("shape", "device", "_type", "names")
+_COPY_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
 def _read_torchrl_cache(path: Path):
-    """The memory-mapped copy TorchRL's ``LeRobotExperienceReplay`` made, opened with ``download=False``."""
-    LeRobotExperienceReplay = _torchrl_lerobot().LeRobotExperienceReplay
+    """The memory-mapped copy TorchRL's ``LeRobotExperienceReplay`` made, read from its files (module docstring)."""
+    if not (path / "meta.json").is_file():
+        raise DemoImportError(
+            f"{path}: not a TorchRL LeRobot copy (no meta.json) nor a LeRobot folder (no meta/info.json)"
+        )
+    return _read_memmap_folder(path, None), {"format": "torchrl-lerobot-memmap"}
+
+
+def _copy_json(file: Path) -> dict:
+    if file.is_symlink() or not file.is_file():
+        raise DemoImportError(f"{file}: missing or not a plain file (a TorchRL LeRobot copy)")
     try:
-        rb = LeRobotExperienceReplay(path.name, root=path.parent, download=False, decode_video=False)
-        td = rb[:]
-    except Exception as err:  # torchrl/tensordict raise many kinds for a folder that is not theirs
-        raise DemoImportError(f"{path}: not a TorchRL LeRobot copy: {type(err).__name__}: {err}") from err
-    return td, {"format": "torchrl-lerobot-memmap"}
+        value = json.loads(file.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
+        raise DemoImportError(f"{file} cannot be read as JSON: {type(err).__name__}: {err}") from None
+    if not isinstance(value, dict):
+        raise DemoImportError(f"{file} holds a {type(value).__name__}, not a JSON object")
+    return value
+
+
+def _read_memmap_folder(folder: Path, frames: int | None):
+    """One folder of tensordict's memmap layout as a TensorDict of private memory maps and lists of text."""
+    from tensordict import NonTensorStack, TensorDict
+
+    meta_file = folder / "meta.json"
+    meta = _copy_json(meta_file)
+    shape = meta.get("shape")
+    if not (isinstance(shape, list) and len(shape) == 1 and type(shape[0]) is int and shape[0] >= 0):
+        raise DemoImportError(f"{meta_file}: shape is {shape!r}, not one number of frames")
+    n = shape[0]
+    if frames is not None and n != frames:
+        raise DemoImportError(f"{meta_file}: {n} frames, the folder above holds {frames}")
+    out = TensorDict(batch_size=[n])
+    for key, entry in meta.items():
+        if key in _TD_SETTINGS:
+            continue
+        if not _COPY_KEY.fullmatch(key) or not isinstance(entry, dict):
+            raise DemoImportError(f"{meta_file}: entry {key!r} is not read (names of letters, digits, _ and -)")
+        kind = entry.get("type")
+        if kind == "TensorDict":
+            if (folder / key).is_symlink():
+                raise DemoImportError(f"{folder / key} is a symbolic link; a copy holds plain folders only")
+            out.set(key, _read_memmap_folder(folder / key, n))
+        elif kind == "NonTensorStack":
+            texts = _copy_json(folder / key / "meta.json").get("data")
+            if not (isinstance(texts, list) and len(texts) == n and all(isinstance(t, str) for t in texts)):
+                raise DemoImportError(
+                    f"{folder / key / 'meta.json'}: entry {key!r} is not {n} texts in JSON (a pickled or other "
+                    "non-tensor field is not read)"
+                )
+            out.set(key, NonTensorStack.from_list(texts))
+        elif kind is None and "dtype" in entry:
+            out.set(key, _read_copy_tensor(folder, key, entry, n, meta_file))
+        else:
+            raise DemoImportError(f"{meta_file}: entry {key!r} is a {kind!r}, not read (tensors and texts only)")
+    return out
+
+
+def _read_copy_tensor(folder: Path, key: str, entry: dict, n: int, meta_file: Path) -> torch.Tensor:
+    dtype = _data.DTYPES.get(str(entry["dtype"]).removeprefix("torch."))
+    shape = entry.get("shape")
+    ok_shape = isinstance(shape, list) and shape[:1] == [n] and all(type(d) is int and d >= 0 for d in shape)
+    if dtype is None or not ok_shape or entry.get("is_nested"):
+        raise DemoImportError(
+            f"{meta_file}: entry {key!r} ({entry.get('dtype')!r}, shape {shape!r}) is not read: a tensor of "
+            f"{n} frames of one of {list(_data.DTYPES)} is"
+        )
+    file = folder / f"{key}.memmap"
+    numel = int(np.prod(shape, dtype=np.int64))
+    need = numel * torch.empty((), dtype=dtype).element_size()
+    if file.is_symlink() or not file.is_file() or file.stat().st_size != need:
+        size = file.stat().st_size if file.is_file() else None
+        raise DemoImportError(f"{file}: missing, linked or of {size} bytes; {need} expected for entry {key!r}")
+    # A private map: the copy's file is never written.
+    return torch.from_file(str(file), shared=False, size=numel, dtype=dtype).reshape(shape)
 
 
 def _keys(td) -> set:
@@ -212,7 +288,8 @@ def _episodes(td, columns: list[str], action_key: str, clip: bool, where: str) -
     action = need(action_key).reshape(len(episode), -1).double().numpy()
     frame = td.get(_FRAME).reshape(-1).numpy().astype(np.int64) if _FRAME in keys else None
     reward = td.get(_REWARD).reshape(-1).double().numpy() if _REWARD in keys else np.zeros(len(episode))
-    done = td.get(_DONE).reshape(-1).numpy().astype(bool) if _DONE in keys else np.zeros(len(episode), bool)
+    # Compared with 0 rather than cast: a stored bool byte other than 0 or 1 still reads as done.
+    done = (td.get(_DONE).reshape(-1).to(torch.int64) != 0).numpy() if _DONE in keys else np.zeros(len(episode), bool)
     text = list(td.get(_TASK).tolist()) if _TASK in keys else None
     if len(episode) == 0:
         raise DemoImportError(f"{where}: the dataset holds no frames")

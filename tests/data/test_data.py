@@ -20,9 +20,10 @@ from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
 from tar_rl import TARLoss
+from tar_rl.cli import main
 from tar_rl.collectors.metaworld import demos, tasks
 from tar_rl.collectors.metaworld.dataset import build_dataset, check_disjoint
-from tar_rl.data import DatasetError, load_dataset
+from tar_rl.data import DatasetError, content_digest, load_dataset
 from tar_rl.policies import DataInfo
 
 TASKS = ["reach-v3", "button-press-topdown-v3"]
@@ -340,25 +341,146 @@ def test_changed_content_is_refused_naming_the_folder_and_file(built, tmp_path, 
         load_dataset(copy)
 
 
-def test_a_folder_without_a_digest_gets_one_on_its_first_load(built, tmp_path, capsys):
-    # Datasets written before the digest existed are checked as before, then get theirs.
+def test_a_folder_without_a_digest_is_refused_until_sealed_by_command(built, tmp_path, capsys):
+    # Without digest.json nothing says the files are as written: such a folder is refused, and sealed only on the
+    # user's explicit command (never by a load), after the other checks pass.
     _, ds = built
-    copy = tmp_path / "earlier"
+    copy = tmp_path / "unsealed"
     shutil.copytree(ds.path, copy)
     (copy / "digest.json").unlink()
+    with pytest.raises(DatasetError, match=rf"{copy} has no content digest .*`tar-rl data seal {copy}`"):
+        load_dataset(copy)
+    assert not (copy / "digest.json").exists()  # a load writes nothing
+    _flip_memmap_byte(copy)  # damaged while unsealed: refused all the same
+    with pytest.raises(DatasetError, match="has no content digest"):
+        load_dataset(copy)
+    _flip_memmap_byte(copy)  # the same bit again: the content as written
     capsys.readouterr()
-    load_dataset(copy)
-    assert "had no content digest" in capsys.readouterr().out
+    assert main(["data", "seal", str(copy)]) == 0
+    assert "recorded its content digest" in capsys.readouterr().out
     recorded = json.loads((copy / "digest.json").read_text())
     assert recorded == json.loads((ds.path / "digest.json").read_text())  # the content is the same
-    assert sorted(recorded["files"]) == sorted(
-        p.relative_to(copy).as_posix() for p in copy.rglob("*") if p.is_file() and p.name != "digest.json"
-    )
-    load_dataset(copy)
-    assert capsys.readouterr().out == ""  # checked, not written again
+    assert load_dataset(copy).digest == ds.digest
+    with pytest.raises(SystemExit, match=rf"tar-rl data seal: {copy} already has a content digest"):
+        main(["data", "seal", str(copy)])
     _flip_memmap_byte(copy)
     with pytest.raises(DatasetError, match="differs from its content digest"):
         load_dataset(copy)
+
+
+def test_seal_refuses_a_folder_that_fails_the_other_checks(built, tmp_path):
+    _, ds = built
+    copy = tmp_path / "unsealed"
+    shutil.copytree(ds.path, copy)
+    (copy / "digest.json").unlink()
+    _truncate_storage(copy)
+    with pytest.raises(SystemExit, match=r"tar-rl data seal: storage file .*action\.memmap holds 10 bytes"):
+        main(["data", "seal", str(copy)])
+    assert not (copy / "digest.json").exists()
+
+
+def _reseal(path):
+    """Record the digest of the folder as it now is, as whoever sends a folder can."""
+    (path / "digest.json").write_text(json.dumps(content_digest(path)))
+
+
+def _set_value(path, name, step, column, raw: bytes, width: int, itemsize: int):
+    """Overwrite the bytes of one value of a stored entry (``width`` values per step) and reseal the folder."""
+    f = path / "buffer" / "storage" / (name.replace(".", "/") + ".memmap")
+    data = bytearray(f.read_bytes())
+    at = (step * width + column) * itemsize
+    data[at : at + itemsize] = raw
+    f.write_bytes(bytes(data))
+    _reseal(path)
+
+
+@pytest.mark.parametrize(
+    ("name", "width", "itemsize", "raw", "rule"),
+    [
+        ("observation", 39, 4, np.float32(np.nan).tobytes(), "holds NaN or Inf"),
+        ("next.reward", 1, 4, np.float32(np.inf).tobytes(), "holds NaN or Inf"),
+        ("action_chunk", 4 * H, 4, np.float32(-np.inf).tobytes(), "holds NaN or Inf"),
+        ("action_chunk_valid", H, 1, b"\x02", "holds a byte other than 0 or 1"),
+    ],
+)
+def test_non_finite_values_are_refused_when_the_dataset_is_checked(built, tmp_path, name, width, itemsize, raw, rule):
+    # A NaN in a received dataset is found by the load (naming the entry and the step), not as a NaN loss later;
+    # the sender's digest agrees with the file.
+    _, ds = built
+    copy = tmp_path / "values"
+    shutil.copytree(ds.path, copy)
+    _set_value(copy, name, 7, min(1, width - 1), raw, width, itemsize)  # step 7, its second value if it has one
+    with pytest.raises(DatasetError, match=rf"{copy}: entry '{name}' {rule}.*\(first at step 7\)"):
+        load_dataset(copy)
+
+
+def _edit_metadata(path, edit):
+    meta = json.loads((path / "metadata.json").read_text())
+    edit(meta)
+    (path / "metadata.json").write_text(json.dumps(meta))
+    _reseal(path)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda m: m.update(format_version=3), r"format version 3, which this tar-rl no longer reads .*build it again"),
+        (lambda m: m.update(format_version=5), r"format version 5, newer than this tar-rl reads \(4\)"),
+        (lambda m: m["stats"]["observation"]["mean"].__setitem__(0, float("nan")), r"stats is .*finite numbers"),
+        (lambda m: m["task_ids"].update({m["tasks"][0]: 50}), r"task_ids is .*index in task_names"),
+        (lambda m: m.update(tasks="reach-v3"), r"tasks is 'reach-v3'; it must be a non-empty list"),
+        (lambda m: m.update(chunk_horizon="4"), r"chunk_horizon is '4'; it must be an integer >= 1"),
+        (lambda m: m["keys"].update({"../../outside": {"shape": [], "dtype": "float32"}}), r"name '../../outside'"),
+        (lambda m: m["keys"]["observation"].update(dtype="object"), r"element type 'object', not one of"),
+        (lambda m: m["keys"]["observation"].update(shape=[38]), r"observation\.memmap holds \d+ bytes, \d+ expected"),
+    ],
+)
+def test_metadata_outside_the_format_is_refused_naming_the_entry(built, tmp_path, edit, message):
+    _, ds = built
+    copy = tmp_path / "meta"
+    shutil.copytree(ds.path, copy)
+    _edit_metadata(copy, edit)
+    with pytest.raises(DatasetError, match=message):
+        load_dataset(copy)
+
+
+def test_task_ids_outside_task_names_are_refused(built, tmp_path):
+    _, ds = built
+    copy = tmp_path / "ids"
+    shutil.copytree(ds.path, copy)
+    _set_value(copy, "task_id", 3, 0, np.int64(50).tobytes(), 1, 8)  # MetaWorld names ids 0..49
+    with pytest.raises(DatasetError, match=r"entry 'task_id' is 50 at step 3; it must be 0\.\.49"):
+        load_dataset(copy)
+
+
+@pytest.mark.parametrize("linked", ["buffer/storage/observation.memmap", "metadata.json"])
+def test_a_linked_file_is_refused(built, tmp_path, linked):
+    # A symbolic link could point at any file of the disk; the digest would follow it.
+    _, ds = built
+    copy = tmp_path / "linked"
+    shutil.copytree(ds.path, copy)
+    f = copy / linked
+    elsewhere = tmp_path / f.name
+    f.rename(elsewhere)
+    f.symlink_to(elsewhere)
+    _reseal(copy)
+    with pytest.raises(DatasetError, match=rf"{f} is a symbolic link"):
+        load_dataset(copy)
+
+
+def test_the_folder_holds_raw_arrays_and_two_json_files_and_its_files_are_never_written(built, tmp_path):
+    _, ds = built
+    files = sorted(p.relative_to(ds.path).as_posix() for p in ds.path.rglob("*") if p.is_file())
+    assert [f for f in files if not f.endswith(".memmap")] == ["digest.json", "metadata.json"]
+    assert sorted(f.removeprefix("buffer/storage/") for f in files if f.endswith(".memmap")) == sorted(
+        k.replace(".", "/") + ".memmap" for k in ds.metadata["keys"]
+    )
+    copy = tmp_path / "mine"
+    shutil.copytree(ds.path, copy)
+    again = load_dataset(copy)
+    again.data["observation"][0, 0] = 1e6  # a private map: this process's copy changes, the file does not
+    assert float(again.data["observation"][0, 0]) == 1e6
+    assert load_dataset(copy).digest == ds.digest
 
 
 def test_leftover_temp_folder_is_removed(built, tmp_path, capsys):

@@ -6,6 +6,7 @@ Expected arrays are built by loops from the frames written (not by the importer'
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pandas as pd
@@ -131,12 +132,11 @@ def test_v3_folder_matches_hand_built_arrays(folder, tmp_path):
     assert again.path == ds.path and len(list((tmp_path / "out").iterdir())) == 1
 
 
-def test_torchrl_converted_copy_gives_the_same_dataset(folder, tmp_path):
-    # What LeRobotExperienceReplay(repo_id, root=ROOT, download=True) leaves in ROOT/<repo_id>, which it
-    # reads back with download=False: TorchRL's canonical keys, memory-mapped.
+def _torchrl_copy(frames: pd.DataFrame, copy):
+    """What LeRobotExperienceReplay(repo_id, root=ROOT, download=True) leaves in ROOT/<repo_id>, which it reads back
+    with download=False: TorchRL's canonical keys, memory-mapped (tensordict's memmap layout)."""
     from torchrl.data.datasets.lerobot import lerobot_columns_to_tensordict
 
-    _, frames = folder
     columns = {
         "observation.state": torch.tensor(np.stack(frames["observation.state"])),
         "observation.environment_state": torch.tensor(np.stack(frames["observation.environment_state"])),
@@ -147,11 +147,50 @@ def test_torchrl_converted_copy_gives_the_same_dataset(folder, tmp_path):
         "next.done": torch.tensor(frames["next.done"].to_numpy()),
         "task": [TASK_TEXT[i] for i in frames["task_index"]],
     }
-    copy = tmp_path / "torchrl" / "user_pusht"
     lerobot_columns_to_tensordict(columns).memmap_(copy)
+    return copy
+
+
+def test_torchrl_converted_copy_gives_the_same_dataset(folder, tmp_path):
+    _, frames = folder
+    copy = _torchrl_copy(frames, tmp_path / "torchrl" / "user_pusht")
     ds = import_lerobot(copy, KEYS, out=tmp_path / "out", chunk_horizon=H, history=K, verbose=False)
     _check(ds, _expected(frames))
     assert ds.metadata["lerobot"]["format"] == "torchrl-lerobot-memmap" and ds.metadata["tasks"] == TASK_TEXT
+
+
+def test_no_file_of_a_torchrl_copy_runs_code(tmp_path):
+    # A payload in each file of the copy that is not an array, and the instructions stored as tensordict stores
+    # text it cannot write as JSON (a pickle.pkl its load_memmap unpickles): no code runs, one line names the file.
+    from payload_helpers import pickle_payload, run
+
+    copy = _torchrl_copy(_frames(), tmp_path / "torchrl" / "user_pusht")
+    metas = sorted(p.relative_to(copy).as_posix() for p in copy.rglob("*") if p.suffix != ".memmap" and p.is_file())
+    assert metas == [
+        "language_instruction/meta.json",
+        "meta.json",
+        "next/meta.json",
+        "observation/meta.json",
+    ]
+    cases = {rel: {rel: pickle_payload(tmp_path / f"code-ran-{i}")} for i, rel in enumerate(metas)}
+    text = json.loads((copy / "language_instruction" / "meta.json").read_text())
+    cases["language_instruction/pickle.pkl"] = {
+        "language_instruction/meta.json": json.dumps({**text, "data": "pickle.pkl"}).encode(),
+        "language_instruction/pickle.pkl": pickle_payload(tmp_path / "code-ran-pickle"),
+    }
+    ended = {}
+    for i, (name, planted) in enumerate(cases.items()):
+        received = tmp_path / f"received-{i}" / "user_pusht"
+        shutil.copytree(copy, received)
+        for rel, content in planted.items():
+            (received / rel).write_bytes(content)
+        command = ["data", "import", "lerobot", str(received), "--obs-keys", KEYS, "--out", str(tmp_path / "out")]
+        ended[name] = (received, run(command))
+    assert sorted(p.name for p in tmp_path.glob("code-ran-*")) == []
+    for name, (received, message) in ended.items():
+        named = received / ("language_instruction/meta.json" if name.endswith("pickle.pkl") else name)
+        assert message.startswith(f"tar-rl data import lerobot: {named}"), message
+    assert not any((tmp_path / "out").iterdir())  # nothing imported
 
 
 def _bad(frames, case):

@@ -11,12 +11,14 @@ from __future__ import annotations
 import json
 import os
 import select
+import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from disk_helpers import FullDisk
 from recipe_helpers import TASK, tiny
@@ -295,3 +297,51 @@ def test_ctrl_c_prints_one_line_with_the_step_and_how_to_resume(tmp_path, data_r
         f"; the last good checkpoint (step {step}) is kept in {run_dir / CHECKPOINT}: run the same command to resume"
     )
     assert step <= int(last.split("interrupted at step ")[1].split()[0]) < 1_000_000
+
+
+def test_a_run_resumes_only_on_the_data_it_trained_on(tmp_path, monkeypatch):
+    from data_helpers import robomimic_file
+    from recipe_helpers import compose_config
+
+    from tar_rl.data import content_digest
+    from tar_rl.importers import import_robomimic
+
+    source = robomimic_file(tmp_path / "lift.hdf5")
+    ds = import_robomimic(source, "state", out=tmp_path / "data", verbose=False)
+    run_dir = tmp_path / "run"
+    config = compose_config(
+        f"data.path={ds.path}",
+        "data.batch_segments=4",
+        "data.slice_len=3",
+        "policy.hidden=[16]",
+        "optim.steps=8",
+        "optim.warmup=1",
+        "logging.every=2",
+        "logging.checkpoint_every=4",
+        "logging.progress=false",
+        "logging.record_weights_at=[]",
+        "eval.rollouts=0",
+        f"run_dir={run_dir}",
+    )
+    _crash_at_sample(monkeypatch, 6)  # stopped in step 6, after the checkpoint of step 4
+    with pytest.raises(_Crash):
+        train(config)
+    monkeypatch.undo()
+    # The dataset's content changes under the run: one action value (whoever changed it recorded its digest).
+    actions = ds.path / "buffer" / "storage" / "action.memmap"
+    values = np.fromfile(actions, dtype=np.float32)
+    values[0] = 0.5 if values[0] != 0.5 else -0.5
+    values.tofile(actions)
+    (ds.path / "digest.json").write_text(json.dumps(content_digest(ds.path)))
+    with pytest.raises(ConfigError, match=rf"{run_dir}: the dataset {ds.path} differs from the data the run trained"):
+        train(config)
+    assert load_checkpoint(run_dir)["step"] == 4  # nothing more was trained
+    # The same data imported again is the same data: the run resumes and finishes.
+    shutil.rmtree(ds.path)
+    again = import_robomimic(source, "state", out=tmp_path / "data", verbose=False)
+    assert again.path == ds.path
+    assert train(config) == run_dir
+    state = load_checkpoint(run_dir)
+    assert state["step"] == 8 and state["data_digest"] == again.digest == ds.digest
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["data"] == {"path": str(ds.path), "digest": ds.digest}
