@@ -111,3 +111,15 @@ def save_torch_atomic(obj: Any, path: str | os.PathLike) -> Path:
     import torch
 
     return atomic_write(path, lambda f: torch.save(obj, f), binary=True)
+
+
+def read_json_object(file: Path, what: str, error: type[Exception] = ValueError) -> dict:
+    """The JSON object in ``file``; ``error`` naming the file and ``what`` it should hold otherwise (unreadable,
+    not JSON, nested too deep, or JSON that is not an object)."""
+    try:
+        value = json.loads(Path(file).read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
+        raise error(f"{file} cannot be read as {what}: {type(err).__name__}: {err}") from None
+    if not isinstance(value, dict):
+        raise error(f"{file} cannot be read as {what}: it holds a {type(value).__name__}, not an object")
+    return value

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from hydra import compose, initialize
@@ -45,3 +46,27 @@ def tiny(tmp_path: Path, data_root: Path, *overrides: str) -> dict:
         f"runs_root={tmp_path / 'runs'}",
         *overrides,
     )
+
+
+def train_command(tmp_path: Path, data_root: Path, *args: str) -> list[str]:
+    """``python -m tar_rl train`` with the tiny job's settings, then ``args``."""
+    return [
+        sys.executable,
+        "-m",
+        "tar_rl",
+        "train",
+        f"data.tasks=[{TASK}]",
+        "data.n_demos=2",
+        "data.workers=1",
+        f"data.root={data_root}",
+        "data.batch_segments=8",
+        "data.slice_len=8",
+        "policy.hidden=[32,32]",
+        "logging.progress=false",
+        "logging.record_weights_at=[]",
+        "eval.rollouts=1",
+        "eval.horizon=20",
+        "eval.workers=1",
+        f"runs_root={tmp_path / 'runs'}",
+        *args,
+    ]

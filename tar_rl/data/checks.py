@@ -21,7 +21,7 @@ import torch
 from tensordict import TensorDict
 
 from tar_rl.errors import TarRLError
-from tar_rl.io import write_json_atomic
+from tar_rl.io import read_json_object, write_json_atomic
 
 __all__ = [
     "DIGEST_FILE",
@@ -74,13 +74,7 @@ def positive_int(name: str, value) -> int:
 
 def read_json(file: Path, what: str) -> dict:
     """The JSON object in ``file`` (a dataset's metadata or digest); ``DatasetError`` naming the file otherwise."""
-    try:
-        value = json.loads(file.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
-        raise DatasetError(f"{file} cannot be read as {what}: {type(err).__name__}: {err}") from None
-    if not isinstance(value, dict):
-        raise DatasetError(f"{file} cannot be read as {what}: it holds a {type(value).__name__}, not an object")
-    return value
+    return read_json_object(file, what, DatasetError)
 
 
 def _sha256(file: Path) -> str:

@@ -61,6 +61,7 @@ from tar_rl.importers.common import (
     import_folder,
     parse_keys,
 )
+from tar_rl.io import read_json_object
 
 __all__ = ["NAME_PREFIX", "import_lerobot"]
 
@@ -195,13 +196,7 @@ def _read_torchrl_cache(path: Path):
 def _copy_json(file: Path) -> dict:
     if file.is_symlink() or not file.is_file():
         raise DemoImportError(f"{file}: missing or not a plain file (a TorchRL LeRobot copy)")
-    try:
-        value = json.loads(file.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
-        raise DemoImportError(f"{file} cannot be read as JSON: {type(err).__name__}: {err}") from None
-    if not isinstance(value, dict):
-        raise DemoImportError(f"{file} holds a {type(value).__name__}, not a JSON object")
-    return value
+    return read_json_object(file, "a JSON object", DemoImportError)
 
 
 def _read_memmap_folder(folder: Path, frames: int | None):

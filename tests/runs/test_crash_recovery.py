@@ -12,7 +12,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 
 import pandas as pd
@@ -20,7 +19,7 @@ import pytest
 import torch
 import yaml
 from disk_helpers import read_only
-from recipe_helpers import TASK, tiny
+from recipe_helpers import tiny, train_command
 from run_helpers import ROLLOUTS, write_run
 
 from tar_rl import io, report
@@ -155,28 +154,7 @@ def test_a_checkpoint_with_its_format_tag_and_nothing_else_is_one_line(tmp_path,
 
 @pytest.mark.slow  # a `tar-rl train` process (imports torch, trains until terminated): ~10 s
 def test_sigterm_says_where_the_run_stopped_and_how_to_resume(tmp_path, data_root):
-    args = [
-        sys.executable,
-        "-m",
-        "tar_rl",
-        "train",
-        f"data.tasks=[{TASK}]",
-        "data.n_demos=2",
-        "data.workers=1",
-        f"data.root={data_root}",
-        "data.batch_segments=8",
-        "data.slice_len=8",
-        "policy.hidden=[32,32]",
-        "logging.progress=false",
-        "logging.record_weights_at=[]",
-        "eval.rollouts=1",
-        "eval.horizon=20",
-        "eval.workers=1",
-        "optim.steps=1000000",
-        "logging.every=10",
-        "logging.checkpoint_every=10",
-        f"runs_root={tmp_path / 'runs'}",
-    ]
+    args = train_command(tmp_path, data_root, "optim.steps=1000000", "logging.every=10", "logging.checkpoint_every=10")
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         give_up = time.monotonic() + DEADLINE

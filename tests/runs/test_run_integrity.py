@@ -16,12 +16,11 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 from disk_helpers import FullDisk
-from recipe_helpers import TASK, tiny
+from recipe_helpers import tiny, train_command
 
 from tar_rl import io
 from tar_rl.cli import main
@@ -221,30 +220,6 @@ def test_a_full_disk_stops_with_one_line_and_the_last_checkpoint_loadable(
 # -- What the commands print -------------------------------------------------------------------
 
 
-def _cli(tmp_path: Path, data_root: Path, *args: str) -> list[str]:
-    """``python -m tar_rl train`` with the tiny job's settings, then ``args``."""
-    return [
-        sys.executable,
-        "-m",
-        "tar_rl",
-        "train",
-        f"data.tasks=[{TASK}]",
-        "data.n_demos=2",
-        "data.workers=1",
-        f"data.root={data_root}",
-        "data.batch_segments=8",
-        "data.slice_len=8",
-        "policy.hidden=[32,32]",
-        "logging.progress=false",
-        "logging.record_weights_at=[]",
-        "eval.rollouts=1",
-        "eval.horizon=20",
-        "eval.workers=1",
-        f"runs_root={tmp_path / 'runs'}",
-        *args,
-    ]
-
-
 @pytest.mark.slow  # a `tar-rl train` process (imports torch): ~5 s
 def test_a_corrupt_checkpoint_is_one_line_naming_the_file_and_debug_shows_the_traceback(
     tmp_path, data_root, monkeypatch
@@ -253,7 +228,7 @@ def test_a_corrupt_checkpoint_is_one_line_naming_the_file_and_debug_shows_the_tr
     run_dir.mkdir()
     (run_dir / CHECKPOINT).write_bytes(b"not a checkpoint")
     out = subprocess.run(
-        _cli(tmp_path, data_root, f"run_dir={run_dir}"), capture_output=True, text=True, timeout=DEADLINE
+        train_command(tmp_path, data_root, f"run_dir={run_dir}"), capture_output=True, text=True, timeout=DEADLINE
     )
     assert out.returncode == 1
     assert "Traceback" not in out.stderr
@@ -265,12 +240,12 @@ def test_a_corrupt_checkpoint_is_one_line_naming_the_file_and_debug_shows_the_tr
     # --debug, in this process: the error itself leaves the command (Python prints its traceback).
     monkeypatch.setenv(DEBUG_ENV, "0")  # restored afterwards (--debug sets it to 1)
     with pytest.raises(ConfigError, match="is not a readable tar-rl checkpoint"):
-        main([*_cli(tmp_path, data_root, f"run_dir={run_dir}")[3:], "--debug"])
+        main([*train_command(tmp_path, data_root, f"run_dir={run_dir}")[3:], "--debug"])
 
 
 @pytest.mark.slow  # a `tar-rl train` process (imports torch, trains until interrupted): ~10 s
 def test_ctrl_c_prints_one_line_with_the_step_and_how_to_resume(tmp_path, data_root):
-    args = _cli(tmp_path, data_root, "optim.steps=1000000", "logging.every=10", "logging.checkpoint_every=10")
+    args = train_command(tmp_path, data_root, "optim.steps=1000000", "logging.every=10", "logging.checkpoint_every=10")
     # Python's own Ctrl-C handling in the child, even where this process was started with SIGINT ignored
     # (a background job of a shell), which the child would inherit.
     args[1:3] = ["-c", INTERRUPTIBLE]
