@@ -83,10 +83,12 @@ FLOAT = "%.6f"
 
 
 def r3_settings() -> dict:
-    """R3's defining settings (from the study's overrides in ``regimes.py``): tasks, demonstrations, steps,
-    and the training step at which TAR reaches full strength (the first recording step)."""
+    """R3's defining settings (from the study's overrides in ``regimes.py``): head, tasks, demonstrations, steps
+    (R4 and R5 share the last three with another head), and the training step at which TAR reaches full strength
+    (the first recording step)."""
     overrides = dict(o.split("=", 1) for o in STUDIES["cpu"].r3)
     return {
+        "policy.name": overrides["policy"],
         "data.tasks": yaml.safe_load(overrides["data.tasks"]),
         "data.n_demos": int(overrides["data.n_demos"]),
         "optim.steps": int(overrides["optim.steps"]),
@@ -117,7 +119,7 @@ def load_pairs(runs_dir: Path) -> Pairs:
             without weights at both recording steps; the message names what is missing.
     """
     r3 = r3_settings()
-    keys = ("data.tasks", "data.n_demos", "optim.steps")
+    keys = ("policy.name", "data.tasks", "data.n_demos", "optim.steps")
     if not runs_dir.is_dir():
         raise SystemExit(f"r3_diagnosis: {runs_dir} is not a folder")
     found = []
