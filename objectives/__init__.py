@@ -24,6 +24,7 @@ from .baselines import (
     truncate_count,
     truncate_weights,
 )
+from .checks import check_step_losses
 from .elementwise import (
     check_element_losses,
     check_gripper_dims,
@@ -41,7 +42,6 @@ from .tar import (
     DEFAULT_EPS,
     DEFAULT_GAMMA,
     DEFAULT_W_MAX,
-    check_step_losses,
     tar_weights,
 )
 from .weighting import (

@@ -37,11 +37,11 @@ import math
 import torch
 from torch import Tensor
 
+from .checks import check_step_losses
 from .tar import (
     DEFAULT_W_MAX,
     HALF_DTYPES,
     cap_exact,
-    check_step_losses,
     mix_uniform,
     unit_mean_softmax,
 )

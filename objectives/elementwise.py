@@ -31,13 +31,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .checks import check_finite
 from .tar import (
     DEFAULT_EPS,
     DEFAULT_GAMMA,
     DEFAULT_W_MAX,
     HALF_DTYPES,
     CapMode,
-    check_finite,
     weights_from_scores,
 )
 from .weighting import (

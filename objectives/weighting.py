@@ -20,6 +20,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from .checks import check_step_losses
 from .registry import Registry
 from .tar import (
     DEFAULT_EPS,
@@ -27,7 +28,6 @@ from .tar import (
     DEFAULT_W_MAX,
     HALF_DTYPES,
     CapMode,
-    check_step_losses,
     check_tar_params,
     tar_weights,
     weights_from_scores,
