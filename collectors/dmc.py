@@ -47,7 +47,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.suite import COLUMNS, Suite
-from tar_rl.registry import did_you_mean
+from tar_rl.objectives.registry import did_you_mean
 
 __all__ = [
     "ACTION_DIM",

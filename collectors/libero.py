@@ -59,7 +59,7 @@ from torchrl.envs.transforms import Transform
 
 from tar_rl.collectors.suite import COLUMNS, Suite
 from tar_rl.data import load_dataset
-from tar_rl.registry import did_you_mean
+from tar_rl.objectives.registry import did_you_mean
 
 __all__ = [
     "ACTION_DIM",

@@ -13,7 +13,7 @@ and ``EvalConfig``).
 from __future__ import annotations
 
 from tar_rl.data import DemoDataset
-from tar_rl.registry import Registry
+from tar_rl.objectives.registry import Registry
 
 from .dmc import DMControlSuite
 from .libero import LiberoSuite

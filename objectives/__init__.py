@@ -1,7 +1,17 @@
-"""Objectives: TAR's weightings and element variants, the baselines from the literature, TAR's schedule, ``TARLoss``.
+"""Objectives: TAR (:mod:`~tar_rl.objectives.tar`, paper Eqs. 3-8), its controls and the registry of
+weightings (:mod:`~tar_rl.objectives.weighting`), the baselines from the literature, the element variants,
+TAR's schedule, ``TARLoss``.
 
-Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.toml``).
+Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.toml``). The weightings import
+torch only and are imported here, so that every weighting is registered in ``WEIGHTINGS``; ``TARLoss`` and the
+supervision transforms need torchrl and tensordict and are imported on first use, so that
+``from tar_rl.objectives import tar_weights`` loads neither.
 """
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
 
 from .baselines import (
     COUNT_TOLERANCE,
@@ -14,6 +24,7 @@ from .baselines import (
     truncate_count,
     truncate_weights,
 )
+from .checks import check_step_losses
 from .elementwise import (
     check_element_losses,
     check_gripper_dims,
@@ -21,35 +32,52 @@ from .elementwise import (
     tar_arm_weights,
     tar_dimnorm_weights,
 )
-from .schedule import SCHEDULE_SHAPES, MixSchedule, mix_at
-from .supervision import perturb_target
-from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
-from .weighting import (
+from .schedule import (
+    SCHEDULE_SHAPES,
+    MixSchedule,
+    mix_at,
+)
+from .tar import (
     CAP_MODES,
+    DEFAULT_EPS,
+    DEFAULT_GAMMA,
+    DEFAULT_W_MAX,
+    tar_weights,
+)
+from .weighting import (
     DEFAULT_DRO_BINS,
     DEFAULT_DRO_ETA,
-    DEFAULT_EPS,
     DEFAULT_FOCAL_BETA,
-    DEFAULT_GAMMA,
     DEFAULT_GRIPPER_DIMS,
     DEFAULT_KEYFRAME_FACTOR,
     DEFAULT_KEYFRAME_FRACTION,
     DEFAULT_TILT,
     DEFAULT_TRUNCATE_FRACTION,
-    DEFAULT_W_MAX,
     WEIGHTINGS,
     Weighting,
     WeightingParams,
-    check_step_losses,
     get_weighting,
     invert_weights,
     perturb_mask,
     random_weights,
     shuffle_weights,
-    tar_weights,
     uniform_weights,
     window_weights,
 )
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .supervision import perturb_target
+    from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
+
+# name -> the module that defines it, for the names that need torchrl or tensordict
+_LAZY = {
+    "perturb_target": "supervision",
+    "COMPILE_MODES": "tar_loss",
+    "NONFINITE_MODES": "tar_loss",
+    "TARLoss": "tar_loss",
+    "compiles_weights": "tar_loss",
+    "segment_mean": "tar_loss",
+}
 
 __all__ = [
     "CAP_MODES",
@@ -100,3 +128,15 @@ __all__ = [
     "uniform_weights",
     "window_weights",
 ]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

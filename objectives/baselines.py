@@ -1,7 +1,7 @@
 """Temporal weightings from the literature, as baselines beside TAR: tilted, truncate, keyframe, focal, dro_time.
 
 Each reweights the steps of a segment with another rule than TAR's; each tests one of TAR's
-choices. They share :mod:`~tar_rl.objectives.weighting`'s conventions:
+choices. They share :mod:`~tar_rl.objectives.tar`'s conventions:
 
 * ``losses``: floating ``[..., L]`` per-step losses, any leading dims; detached here (no
   gradient flows through the weights). Half-precision losses are weighted in float32 and the
@@ -37,6 +37,14 @@ import math
 import torch
 from torch import Tensor
 
+from .checks import check_step_losses
+from .tar import (
+    DEFAULT_W_MAX,
+    HALF_DTYPES,
+    cap_exact,
+    mix_uniform,
+    unit_mean_softmax,
+)
 from .weighting import (
     DEFAULT_DRO_ETA,
     DEFAULT_FOCAL_BETA,
@@ -44,15 +52,9 @@ from .weighting import (
     DEFAULT_KEYFRAME_FRACTION,
     DEFAULT_TILT,
     DEFAULT_TRUNCATE_FRACTION,
-    DEFAULT_W_MAX,
-    HALF_DTYPES,
     WEIGHTINGS,
     Weighting,
     WeightingParams,
-    cap_exact,
-    check_step_losses,
-    mix_uniform,
-    unit_mean_softmax,
 )
 
 __all__ = [

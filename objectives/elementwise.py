@@ -31,17 +31,19 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .weighting import (
+from .checks import check_finite
+from .tar import (
     DEFAULT_EPS,
     DEFAULT_GAMMA,
     DEFAULT_W_MAX,
     HALF_DTYPES,
-    WEIGHTINGS,
     CapMode,
+    weights_from_scores,
+)
+from .weighting import (
+    WEIGHTINGS,
     Weighting,
     WeightingParams,
-    check_finite,
-    weights_from_scores,
 )
 
 __all__ = [
@@ -127,7 +129,7 @@ def _tar_arm(losses: Tensor, valid: Tensor, params: WeightingParams, mix: float 
     x, step_valid = _prepare(losses, valid)
     gripper = _gripper_mask(x.shape[-1], params.gripper_dims, x.device)
     arm_valid = valid & ~gripper
-    w = weights_from_scores(element_mean(x, arm_valid), step_valid, params, mix)  # [B, L]
+    w = weights_from_scores(element_mean(x, arm_valid), step_valid, mix=mix, **params.tar_kwargs())  # [B, L]
     w = w.reshape(w.shape + (1,) * (x.ndim - 2))
     return torch.where(arm_valid, w, valid.to(x.dtype)).to(losses.dtype)
 
@@ -140,7 +142,7 @@ def _tar_dimnorm(losses: Tensor, valid: Tensor, params: WeightingParams, mix: fl
     scale = flat_x.sum(0) / flat_m.sum(0).clamp_min(1)  # [A]: each dimension's mean loss over the batch
     # A dimension whose losses are all 0 scores 0 (0 / tiny), whatever its scale.
     normalised = x / scale.clamp_min(torch.finfo(x.dtype).tiny)
-    w = weights_from_scores(element_mean(normalised, valid), step_valid, params, mix)  # [B, L]
+    w = weights_from_scores(element_mean(normalised, valid), step_valid, mix=mix, **params.tar_kwargs())  # [B, L]
     w = w.reshape(w.shape + (1,) * (x.ndim - 2))
     return (w * m).to(losses.dtype)
 

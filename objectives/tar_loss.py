@@ -25,18 +25,20 @@ from torchrl.objectives import LossModule
 from .elementwise import element_mean, masked_mean
 from .schedule import MixSchedule
 from .supervision import perturb_target
+from .tar import (
+    DEFAULT_EPS,
+    DEFAULT_GAMMA,
+    DEFAULT_W_MAX,
+)
 from .weighting import (
     DEFAULT_DRO_BINS,
     DEFAULT_DRO_ETA,
-    DEFAULT_EPS,
     DEFAULT_FOCAL_BETA,
-    DEFAULT_GAMMA,
     DEFAULT_GRIPPER_DIMS,
     DEFAULT_KEYFRAME_FACTOR,
     DEFAULT_KEYFRAME_FRACTION,
     DEFAULT_TILT,
     DEFAULT_TRUNCATE_FRACTION,
-    DEFAULT_W_MAX,
     WeightingParams,
     get_weighting,
     perturb_mask,

@@ -1,24 +1,13 @@
-"""Per-step weightings of segment losses: TAR (paper Eqs. 3-8) and its control variants.
+"""TAR's control variants (shuffle, random, invert, the supervision perturbations), ``window_weights``,
+the hyper-parameters of every weighting (``WeightingParams``) and the registry of weightings.
 
-The baselines from the literature (tilted, truncate, keyframe, focal, dro_time) live in
-:mod:`~tar_rl.objectives.baselines` and share this module's conventions, parameters and registry.
+TAR itself (paper Eqs. 3-8, ``tar_weights``) lives in :mod:`~tar_rl.objectives.tar`; the controls
+reuse its building blocks. The baselines from the literature (tilted, truncate, keyframe, focal,
+dro_time) live in :mod:`~tar_rl.objectives.baselines` and share :mod:`~tar_rl.objectives.tar`'s
+conventions (shapes, mask polarity, unit mean) and this module's parameters and registry.
 
 Every function here is pure: it reads ``losses`` and ``valid`` and returns a new tensor of
-weights. Nothing is differentiated through the weights (the losses are detached first, the
-paper's stop-gradient of Eq. 3).
-
-Shapes and the mask, for every function in this module:
-
-* ``losses``: floating tensor ``[..., L]``, the per-step losses of segments of length ``L``
-  (any leading batch dimensions).
-* ``valid``: ``torch.bool`` tensor of the same shape, ``True`` on real steps and ``False`` on
-  padding. This is the only mask polarity used in tar-rl; it is TorchRL's
-  ``("collector", "mask")`` as written by ``SliceSampler(pad_output=True)``.
-* the weights: same shape and dtype as ``losses``, ``0`` on padding, mean ``1`` over the
-  valid steps of every segment that has one, all ``0`` in a segment that has none.
-
-Half-precision losses are weighted in float32 and the weights cast back, so AMP runs see the
-same weights as full-precision runs up to the final rounding.
+weights. Nothing is differentiated through the weights.
 """
 
 from __future__ import annotations
@@ -31,48 +20,41 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from tar_rl.registry import Registry
+from .checks import check_step_losses
+from .registry import Registry
+from .tar import (
+    DEFAULT_EPS,
+    DEFAULT_GAMMA,
+    DEFAULT_W_MAX,
+    HALF_DTYPES,
+    CapMode,
+    check_tar_params,
+    tar_weights,
+    weights_from_scores,
+)
 
 __all__ = [
-    "CAP_MODES",
     "DEFAULT_DRO_BINS",
     "DEFAULT_DRO_ETA",
-    "DEFAULT_EPS",
     "DEFAULT_FOCAL_BETA",
-    "DEFAULT_GAMMA",
     "DEFAULT_GRIPPER_DIMS",
     "DEFAULT_KEYFRAME_FACTOR",
     "DEFAULT_KEYFRAME_FRACTION",
     "DEFAULT_TILT",
     "DEFAULT_TRUNCATE_FRACTION",
-    "DEFAULT_W_MAX",
     "WEIGHTINGS",
     "Weighting",
     "WeightingParams",
-    "check_step_losses",
     "get_weighting",
     "invert_weights",
     "perturb_mask",
     "random_weights",
     "shuffle_weights",
-    "tar_weights",
+    "tar_weights",  # defined in .tar; re-exported with its controls
     "uniform_weights",
     "window_weights",
 ]
 
-#: Softmax temperature on the within-segment z-scores (Eq. 6). With ``gamma=1`` a step one
-#: standard deviation above the segment mean gets ``e`` times the weight of an average step.
-DEFAULT_GAMMA = 1.0
-#: Cap on a single step's weight, in units of the segment's mean weight (Eq. 8).
-DEFAULT_W_MAX = 3.0
-#: The smallest cap ``cap="paper"`` renormalises to finite weights: the smallest normal float32 (weights are
-#: computed in float32 at least). Clipping every weight at a smaller ``w_max`` and rescaling to unit mean
-#: multiplies by ``1 / w_max``, which overflows float32.
-MIN_W_MAX = float(torch.finfo(torch.float32).tiny)
-#: Added to the segment's standard deviation before dividing (Eq. 5). Per-step imitation
-#: losses of a trained policy are ~1e-3..1e-1 with spreads of the same order, so 1e-8 leaves
-#: the z-scores untouched there and only matters when a segment's losses are all equal.
-DEFAULT_EPS = 1e-8
 #: Tilt ``t`` of the ``tilted`` baseline (:func:`~tar_rl.objectives.baselines.tilted_weights`).
 DEFAULT_TILT = 1.0
 #: Fraction ``q`` of a segment's valid steps that the ``truncate`` baseline drops.
@@ -90,12 +72,6 @@ DEFAULT_DRO_ETA = 0.01
 DEFAULT_DRO_BINS = 10
 #: ``tar_arm``'s gripper dims: the last action dim (MetaWorld's and LIBERO's gripper).
 DEFAULT_GRIPPER_DIMS: tuple[int, ...] = (-1,)
-
-CapMode = Literal["paper", "exact"]
-CAP_MODES: tuple[str, ...] = ("paper", "exact")
-
-#: Dtypes weighted in float32, the weights cast back.
-HALF_DTYPES = (torch.float16, torch.bfloat16)
 
 
 def _finite_number(value) -> bool:
@@ -145,23 +121,7 @@ class WeightingParams:
     gripper_dims: tuple[int, ...] = DEFAULT_GRIPPER_DIMS
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.gamma, (int, float)) and math.isfinite(self.gamma) and self.gamma > 0):
-            raise ValueError(f"gamma must be a finite number > 0, got {self.gamma!r}.")
-        if not (isinstance(self.w_max, (int, float)) and self.w_max > 0):
-            raise ValueError(f"w_max must be a number > 0 (math.inf for no cap), got {self.w_max!r}.")
-        if not (isinstance(self.eps, (int, float)) and math.isfinite(self.eps) and self.eps > 0):
-            raise ValueError(f"eps must be a finite number > 0, got {self.eps!r}.")
-        if self.cap not in CAP_MODES:
-            raise ValueError(f"cap must be one of {CAP_MODES}, got {self.cap!r}.")
-        if self.cap == "exact" and self.w_max < 1:
-            raise ValueError(
-                f"cap='exact' needs w_max >= 1 (weights of mean 1 cannot all be below 1), got {self.w_max!r}."
-            )
-        if self.w_max < MIN_W_MAX:
-            raise ValueError(
-                f"w_max must be >= {MIN_W_MAX:.4g} (the smallest normal float32: renormalising weights clipped at a "
-                f"smaller cap overflows to inf), got {self.w_max!r}."
-            )
+        check_tar_params(gamma=self.gamma, w_max=self.w_max, eps=self.eps, cap=self.cap)
         for name, ok, rule in (
             ("tilt", lambda v: v > 0, "a finite number > 0"),
             ("truncate_fraction", lambda v: 0 <= v < 1, "a number in [0, 1)"),
@@ -185,137 +145,9 @@ class WeightingParams:
         ):
             raise ValueError(f"gripper_dims must be a non-empty tuple of distinct ints, got {dims!r}.")
 
-
-def check_step_losses(losses: Tensor, valid: Tensor) -> None:
-    """Raise a clear error if ``losses``/``valid`` are not a valid ``[..., L]`` pair.
-
-    Checks types, dtypes and shapes, then that every loss at a valid step is finite (padded
-    steps may hold anything). Under ``torch.compile`` the finiteness check becomes an
-    in-graph assertion with the same message, so compiled code needs no graph break.
-    """
-    if not isinstance(losses, Tensor) or not isinstance(valid, Tensor):
-        raise TypeError(f"losses and valid must be tensors, got {type(losses).__name__} and {type(valid).__name__}.")
-    if not losses.is_floating_point():
-        raise TypeError(f"losses must be a floating-point tensor, got dtype {losses.dtype}.")
-    if valid.dtype != torch.bool:
-        raise TypeError(
-            f"valid must be a torch.bool mask (True on real steps, False on padding), got dtype {valid.dtype}."
-        )
-    if losses.ndim < 1 or losses.shape[-1] < 1:
-        raise ValueError(f"losses must have shape [..., L] with L >= 1, got {tuple(losses.shape)}.")
-    if losses.shape != valid.shape:
-        raise ValueError(
-            f"losses and valid must have the same shape [..., L], got {tuple(losses.shape)} and {tuple(valid.shape)}."
-        )
-    check_finite(losses, valid, "step")
-
-
-def check_finite(losses: Tensor, valid: Tensor, what: str) -> None:
-    """Raise a ``ValueError`` if a loss where ``valid`` is ``True`` is NaN or inf (``what``: ``step`` or
-    ``element``, for the message). Under ``torch.compile`` the check is an in-graph assertion with the same
-    message, so compiled code needs no graph break."""
-    bad = valid & ~torch.isfinite(losses.detach())
-    message = f"non-finite per-{what} loss at a valid {what}: the weights would be NaN."
-    if torch.compiler.is_compiling():
-        torch._assert_async(~bad.any(), message)
-        return
-    if bad.any():
-        first = tuple(int(i) for i in bad.nonzero()[0])
-        raise ValueError(
-            f"{message} {int(bad.sum())} of {int(valid.sum())} valid {what}s are NaN or inf "
-            f"(first at index {first}, value {losses.detach()[first].item()})."
-        )
-
-
-# ---------------------------------------------------------------------------------------------
-# Building blocks of Eqs. 4-8, shared with the baselines (``baselines.py``). They assume checked
-# inputs and detached losses; the package does not export them.
-# ---------------------------------------------------------------------------------------------
-
-
-def _zscores(x: Tensor, m: Tensor, count: Tensor, eps: float) -> Tensor:
-    """Eqs. 4-5: masked mean, population std and z-score; ``0`` on padding."""
-    mu = x.sum(-1, keepdim=True) / count
-    dev = (x - mu) * m
-    sigma = (dev.square().sum(-1, keepdim=True) / count).sqrt()
-    return dev / (sigma + eps)
-
-
-def unit_mean_softmax(scores: Tensor, valid: Tensor, m: Tensor, n_valid: Tensor, gamma: float) -> Tensor:
-    """Eqs. 6-7: masked softmax of ``gamma * scores`` times the number of valid steps."""
-    # The lowest finite value (not -inf) keeps a segment without valid steps finite: its
-    # softmax is uniform and the mask then zeroes it.
-    logits = (gamma * scores).masked_fill(~valid, torch.finfo(scores.dtype).min)
-    return n_valid * torch.softmax(logits, dim=-1) * m
-
-
-def _cap_paper(w: Tensor, m: Tensor, n_valid: Tensor, w_max: float) -> Tensor:
-    """Eq. 8: clip at ``w_max`` once, then rescale to unit mean over the valid steps."""
-    if math.isinf(w_max):
-        return w
-    clipped = w.clamp_max(w_max)
-    total = clipped.sum(-1, keepdim=True)
-    return clipped * (n_valid / total.clamp_min(torch.finfo(w.dtype).tiny)) * m
-
-
-def cap_exact(w: Tensor, m: Tensor, n_valid: Tensor, w_max: float) -> Tensor:
-    """Unit-mean weights ``min(c * w, w_max)`` with the cap holding exactly (``w_max >= 1``).
-
-    Water-filling: with the valid weights sorted in decreasing order ``v_0 >= v_1 >= ...``,
-    clipping the first ``k`` at ``w_max`` leaves the scale ``c_k = (M - k w_max) / S_k``
-    (``S_k`` the sum of the rest) for the others; the answer is the smallest ``k`` whose
-    largest unclipped weight stays under the cap, ``c_k v_k <= w_max``. If the positive
-    weights cannot carry the mass (softmax underflow at huge ``gamma``), they take ``w_max``
-    and the zero-weight steps share the rest equally: the limit of adding a vanishing constant
-    to every weight. One sort, no loop over iterations.
-    """
-    if math.isinf(w_max):
-        return w
-    size = w.shape[-1]
-    v, _ = torch.sort(w, dim=-1, descending=True)  # padding holds 0 and sorts last
-    suffix = v.flip(-1).cumsum(-1).flip(-1)  # suffix[k] = sum_{j >= k} v_j
-    k = torch.arange(size, device=w.device, dtype=w.dtype)
-    mass = n_valid - k * w_max  # what the unclipped steps must carry
-    scale = mass / suffix.clamp_min(torch.finfo(w.dtype).tiny)
-    fits = (suffix > 0) & (mass > 0) & (scale * v <= w_max * (1 + 1e-6)) & (k < n_valid)
-    found = fits.any(-1, keepdim=True)
-    first = fits.to(torch.int8).argmax(-1, keepdim=True)  # first k that fits
-    c = scale.gather(-1, first)
-    capped = torch.minimum(c * w, torch.full_like(w, w_max))
-    # Fallback (no k fits): positives at the cap, zeros share the remaining mass equally.
-    positive = (w > 0).to(w.dtype) * m
-    n_pos = positive.sum(-1, keepdim=True)
-    share = (n_valid - n_pos * w_max) / (n_valid - n_pos).clamp_min(1)
-    fallback = positive * w_max + (m - positive) * share
-    return torch.where(found, capped, fallback) * m
-
-
-def mix_uniform(w: Tensor, m: Tensor, mix: float | Tensor) -> Tensor:
-    """The schedule's blend ``(1 - mix) * uniform + mix * w`` (Sec. III-B), for every weighting.
-
-    ``m`` is the float mask of valid steps (the uniform weights); ``mix == 1`` returns ``w``.
-    A weighting with a cap applies it after the blend, as TAR does.
-    """
-    if isinstance(mix, (int, float)) and mix == 1:
-        return w
-    return (1 - mix) * m + mix * w
-
-
-def weights_from_scores(scores_input: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor) -> Tensor:
-    """Eqs. 4-8 plus the schedule's mixing, on already detached and checked inputs (for weightings that score
-    steps by something other than their loss; not exported)."""
-    dtype = scores_input.dtype
-    x = scores_input.float() if dtype in HALF_DTYPES else scores_input
-    m = valid.to(x.dtype)
-    x = torch.where(valid, x, torch.zeros((), dtype=x.dtype, device=x.device))  # padding may hold NaN
-    n_valid = m.sum(-1, keepdim=True)
-    count = n_valid.clamp_min(1)
-    scores = _zscores(x, m, count, params.eps)
-    w = unit_mean_softmax(scores, valid, m, n_valid, params.gamma)
-    w = mix_uniform(w, m, mix)  # the schedule's alpha, applied before the cap (Sec. III-B)
-    cap = cap_exact if params.cap == "exact" else _cap_paper
-    w = cap(w, m, n_valid, params.w_max)
-    return w.to(dtype)
+    def tar_kwargs(self) -> dict:
+        """TAR's hyper-parameters as keyword arguments of :func:`~tar_rl.objectives.tar.tar_weights`."""
+        return {"gamma": self.gamma, "w_max": self.w_max, "eps": self.eps, "cap": self.cap}
 
 
 def _rand_like(x: Tensor, generator: torch.Generator | None, normal: bool) -> Tensor:
@@ -328,58 +160,6 @@ def _rand_like(x: Tensor, generator: torch.Generator | None, normal: bool) -> Te
 # ---------------------------------------------------------------------------------------------
 # Public weightings
 # ---------------------------------------------------------------------------------------------
-
-
-def tar_weights(
-    losses: Tensor,
-    valid: Tensor,
-    *,
-    gamma: float = DEFAULT_GAMMA,
-    w_max: float = DEFAULT_W_MAX,
-    eps: float = DEFAULT_EPS,
-    mix: float | Tensor = 1.0,
-    cap: CapMode = "paper",
-) -> Tensor:
-    """TAR's per-step weights (paper Eqs. 3-8), one segment per row of the last axis.
-
-    Steps: stop-gradient (Eq. 3); masked mean and population std over the valid steps
-    (Eq. 4); z-score ``(l - mu) / (sigma + eps)`` (Eq. 5); masked softmax of ``gamma * s``
-    (Eq. 6); unit-mean scaling ``M * p`` (Eq. 7); mixing ``(1 - mix) + mix * w`` with the
-    schedule's alpha (Sec. III-B); cap at ``w_max`` and renormalisation to unit mean (Eq. 8).
-
-    Args:
-        losses: ``[..., L]`` floating per-step losses. Detached here; no gradient flows
-            through the weights.
-        valid: ``[..., L]`` bool, ``True`` on real steps, ``False`` on padding.
-
-    Keyword Args:
-        gamma: softmax temperature, ``> 0``. Default ``1.0``.
-        w_max: cap on a weight, ``> 0`` (``math.inf``: none). Default ``3.0``.
-        eps: added to the std, ``> 0``. Default ``1e-8``.
-        mix: alpha in ``[0, 1]`` (float or 0-d tensor): ``0`` gives uniform weights, ``1`` full TAR.
-        cap: ``"paper"`` (clip once, renormalise; weights may end slightly above ``w_max``)
-            or ``"exact"`` (the cap holds exactly; needs ``w_max >= 1``).
-
-    Returns:
-        Weights of the shape and dtype of ``losses``: ``>= 0``, ``0`` on padding, mean ``1``
-        over the valid steps of each segment; all ``1`` when a segment's losses are equal,
-        ``1`` on a lone valid step, all ``0`` in a segment with no valid step.
-
-    Raises:
-        TypeError, ValueError: on a non-bool mask, mismatched shapes, bad hyper-parameters,
-            or a NaN/inf loss at a valid step.
-
-    Examples:
-        >>> import torch
-        >>> losses = torch.tensor([[0.0, 0.0, 3.0, 9.0]])
-        >>> valid = torch.tensor([[True, True, True, False]])
-        >>> w = tar_weights(losses, valid, gamma=1.0, w_max=3.0)
-        >>> w[0, 3].item(), round(w[0, :3].mean().item(), 6)
-        (0.0, 1.0)
-    """
-    params = WeightingParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
-    check_step_losses(losses, valid)
-    return weights_from_scores(losses.detach(), valid, params, mix)
 
 
 def window_weights(losses: Tensor, slice_len: int, **params) -> Tensor:
@@ -428,7 +208,7 @@ def invert_weights(losses: Tensor, valid: Tensor, *, mix: float | Tensor = 1.0, 
     same temperature, unit mean, mixing and cap (``**params`` as in :func:`tar_weights`).
     """
     check_step_losses(losses, valid)
-    return weights_from_scores(-losses.detach(), valid, WeightingParams(**params), mix)
+    return weights_from_scores(-losses.detach(), valid, mix=mix, **WeightingParams(**params).tar_kwargs())
 
 
 def random_weights(
@@ -446,7 +226,7 @@ def random_weights(
     """
     check_step_losses(losses, valid)
     scores = _rand_like(losses, generator, normal=True).to(losses.dtype)
-    return weights_from_scores(scores, valid, WeightingParams(**params), mix)
+    return weights_from_scores(scores, valid, mix=mix, **WeightingParams(**params).tar_kwargs())
 
 
 def _random_order(valid: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -557,29 +337,25 @@ class Weighting:
     elementwise: bool = False
 
 
-def _param_kwargs(params: WeightingParams) -> dict:
-    return {"gamma": params.gamma, "w_max": params.w_max, "eps": params.eps, "cap": params.cap}
-
-
 def _uniform(losses, valid, params, mix, generator):
     return uniform_weights(losses, valid)
 
 
 def _tar(losses, valid, params, mix, generator):
     check_step_losses(losses, valid)
-    return weights_from_scores(losses.detach(), valid, params, mix)
+    return weights_from_scores(losses.detach(), valid, mix=mix, **params.tar_kwargs())
 
 
 def _invert(losses, valid, params, mix, generator):
-    return invert_weights(losses, valid, mix=mix, **_param_kwargs(params))
+    return invert_weights(losses, valid, mix=mix, **params.tar_kwargs())
 
 
 def _random(losses, valid, params, mix, generator):
-    return random_weights(losses, valid, mix=mix, generator=generator, **_param_kwargs(params))
+    return random_weights(losses, valid, mix=mix, generator=generator, **params.tar_kwargs())
 
 
 def _shuffle(losses, valid, params, mix, generator):
-    return shuffle_weights(losses, valid, mix=mix, generator=generator, **_param_kwargs(params))
+    return shuffle_weights(losses, valid, mix=mix, generator=generator, **params.tar_kwargs())
 
 
 WEIGHTINGS: Registry[Weighting] = Registry("weighting")

@@ -13,8 +13,8 @@ import difflib
 import re
 
 from tar_rl.objectives import WEIGHTINGS
+from tar_rl.objectives.registry import did_you_mean
 from tar_rl.policies import POLICIES
-from tar_rl.registry import did_you_mean
 
 from .config import CONFIG_NAME, PRESETS, SECTIONS, TrainConfig, register_configs
 from .errors import ConfigError

@@ -4,8 +4,9 @@ Layers, lowest first: ``objectives`` (the loss, a leaf) <- the core (``tar_rl`` 
 format, policies, runs, metrics, reports, importers) <- ``collectors`` (simulator suites) <-
 ``recipes`` <- the command line (``tar_rl.cli``, ``tar_rl.__main__``); the benchmark scripts sit on
 top. A module may import its own layer and the layers below it, never above, wherever the import
-statement is (module level or inside a function). ``tar_rl.registry`` imports nothing from the
-project and is open to every layer; the package's ``__init__`` re-exports objectives lazily.
+statement is (module level or inside a function). The registry class lives in the leaf
+(``tar_rl.objectives.registry``), so that ``objectives`` imports nothing from the rest of the package;
+the package's ``__init__`` re-exports objectives lazily.
 No module imports another module's private name (``from m import _x`` or ``m._x``).
 """
 
@@ -25,7 +26,7 @@ FOLDERS = {
     "recipes": ("tar_rl.recipes", 3),
 }
 TOP = {"tar_rl.cli": 4, "tar_rl.__main__": 4}
-OPEN = {"tar_rl.registry", "tar_rl"}  # importable from every layer
+OPEN = {"tar_rl"}  # importable from every layer (its __init__ imports objectives on first use)
 
 
 def _modules() -> dict[str, Path]:
@@ -173,3 +174,28 @@ def test_no_module_rebinds_its_globals():
         if isinstance(node, ast.Global)
     ]
     assert not found, "\n".join(found)
+
+
+def _leaf_violations() -> list[str]:
+    """Imports of a project module outside ``tar_rl.objectives`` (``tar_rl`` itself included) by ``objectives``."""
+    return [
+        f"{_where(path)}:{line}: {module} imports {target}"
+        for module, path in MODULES.items()
+        if layer(module) == 0
+        for line, target, _ in imports(module, path)
+        if (target == "tar_rl" or target.startswith("tar_rl.")) and layer(target) != 0
+    ]
+
+
+def test_objectives_import_nothing_from_the_rest_of_the_package(monkeypatch, tmp_path):
+    assert _leaf_violations() == []
+    fake = tmp_path / "objectives_fake.py"
+    fake.write_text(
+        "import tar_rl\nfrom tar_rl.registry import Registry\nfrom tar_rl.objectives.tar import tar_weights\n"
+    )
+    monkeypatch.setitem(MODULES, "tar_rl.objectives.fake", fake)
+    found = _leaf_violations()
+    assert [v.split(": ", 1)[1] for v in found if "fake" in v] == [
+        "tar_rl.objectives.fake imports tar_rl",
+        "tar_rl.objectives.fake imports tar_rl.registry",
+    ]

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-MODULES = ["tar_rl.objectives.weighting", "tar_rl.objectives.schedule", "tar_rl.objectives.tar_loss"]
+MODULES = ["tar_rl.objectives.tar", "tar_rl.objectives.schedule", "tar_rl.objectives.tar_loss"]
 
 
 def test_root_folders_are_tar_rl_subpackages():

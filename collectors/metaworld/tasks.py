@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Iterable, Sequence
 
-from tar_rl.registry import did_you_mean
+from tar_rl.objectives.registry import did_you_mean
 
 __all__ = [
     "DIFFICULTY_GROUPS",

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from tar_rl import data as _data
-from tar_rl.registry import Registry
+from tar_rl.objectives.registry import Registry
 
 __all__ = [
     "ACTION_RANGE",

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import LossModule
 
-from tar_rl.registry import Registry
+from tar_rl.objectives.registry import Registry
 
 __all__ = [
     "POLICIES",

@@ -6,7 +6,7 @@ names, get or build by name; an unknown name is refused with the registered ones
 recipe's Hydra config groups and the command line's choices are generated from the registries, so
 adding an entry is one new module plus its ``register`` call.
 
-This module imports nothing from the project: every layer (``objectives`` included) may use it.
+It lives in ``objectives`` (the lowest layer) and imports nothing from the project, so every layer may use it.
 """
 
 from __future__ import annotations
