@@ -12,14 +12,13 @@ import json
 import os
 import signal
 import subprocess
-import time
 
 import pandas as pd
 import pytest
 import torch
 import yaml
 from disk_helpers import read_only
-from recipe_helpers import tiny, train_command
+from recipe_helpers import tiny, train_command, wait_for_checkpoint
 from run_helpers import ROLLOUTS, write_run
 
 from tar_rl import io, report
@@ -157,11 +156,7 @@ def test_sigterm_says_where_the_run_stopped_and_how_to_resume(tmp_path, data_roo
     args = train_command(tmp_path, data_root, "optim.steps=1000000", "logging.every=10", "logging.checkpoint_every=10")
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        give_up = time.monotonic() + DEADLINE
-        while not list((tmp_path / "runs").glob(f"*/{CHECKPOINT}")):  # training: it wrote a checkpoint
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < give_up, f"no checkpoint within {DEADLINE} s"
-            time.sleep(0.2)
+        wait_for_checkpoint(proc, tmp_path / "runs", DEADLINE)  # training: it wrote a checkpoint
         os.kill(proc.pid, signal.SIGTERM)  # what a scheduler ending the job sends
         _, err = proc.communicate(timeout=60)
     finally:

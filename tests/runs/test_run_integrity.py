@@ -15,12 +15,11 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 from disk_helpers import FullDisk
-from recipe_helpers import tiny, train_command
+from recipe_helpers import tiny, train_command, wait_for_checkpoint
 
 from tar_rl import io
 from tar_rl.cli import main
@@ -251,11 +250,7 @@ def test_ctrl_c_prints_one_line_with_the_step_and_how_to_resume(tmp_path, data_r
     args[1:3] = ["-c", INTERRUPTIBLE]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        give_up = time.monotonic() + DEADLINE
-        while not list((tmp_path / "runs").glob(f"*/{CHECKPOINT}")):  # training: it wrote a checkpoint
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < give_up, f"no checkpoint within {DEADLINE} s"
-            time.sleep(0.2)
+        wait_for_checkpoint(proc, tmp_path / "runs", DEADLINE)  # training: it wrote a checkpoint
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole process group
         _, err = proc.communicate(timeout=60)
     finally:
