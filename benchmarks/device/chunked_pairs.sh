@@ -23,8 +23,7 @@ export PYTHONPATH=/tmp/site
 rm -rf /tmp/study && cp -r wt-gpu /tmp/study || exit 2
 # The study's runs record the commit of the code they run from (git rev-parse HEAD in the package's folder).
 (cd /tmp/study && git init -q && cat COMMIT > .git/HEAD && rm COMMIT) || exit 2
-# The package's layout (pyproject's package-dir) as links, so that the tree imports without being built.
-for sub in objectives collectors recipes; do ln -s "../$sub" "/tmp/study/tar_rl/$sub" || exit 2; done
+# The tree imports unbuilt: tar_rl/objectives, collectors and recipes are links to the root folders.
 export PYTHONPATH=/tmp/study:/tmp/site
 python3 -P - <<'PY' || exit 2
 import torch, torchrl, tensordict, metaworld, mujoco
