@@ -429,15 +429,30 @@ def execute(scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_d
 # -- Provenance ------------------------------------------------------------------------------------
 
 
+def portable_argument(arg: str) -> str:
+    """A command-line argument with the path it names (``PATH`` or ``KEY=PATH``) written relative to the repository
+    (:func:`tar_rl.runs.portable_path`); a path outside the repository and its folders (an output that is not
+    committed) is kept."""
+    from tar_rl.runs import portable_path
+
+    key, sep, value = arg.rpartition("=")
+    try:
+        return key + sep + portable_path(value, Path(__file__).resolve().parent.parent)
+    except ValueError:
+        return arg
+
+
 def provenance(scale: Scale, argv: Sequence[str], script: str = "paper_experiments.py") -> dict:
-    """Command (``script`` in ``benchmarks/`` with ``argv``), git commit, scale and machine of an output."""
+    """Command (``script`` in ``benchmarks/`` with ``argv``, its paths relative to the repository), git commit,
+    scale and machine of an output."""
     import torch
 
     from tar_rl.runs import git_commit
 
+    command = " ".join(shlex.quote(portable_argument(a)) for a in argv)
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     return {
-        "command": f"python benchmarks/{script} " + " ".join(shlex.quote(a) for a in argv),
+        "command": f"python benchmarks/{script} {command}",
         "git_commit": git_commit() or "unknown",
         "scale": scale.name,
         "scale_about": scale.about,

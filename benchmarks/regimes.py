@@ -54,6 +54,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_experiments.py
 from paper_analysis import fmt_p as _fmt_p
 from paper_experiments import EIGHT_TASKS, Planner, Scale, Spec, execute, provenance
 
+#: The repository's root: what the tracked copy of a run's config names its folders relative to.
+REPO = Path(__file__).resolve().parent.parent
 COMMANDS = ("r1", "r2-screen", "r2", "r3", "r4", "r5", "table", "collect")
 BASELINE, TREATMENT = "uniform", "tar"
 REGIMES = ("R1", "R1-10", "R2", "R3")
@@ -393,25 +395,14 @@ def check_started(out: Path, tasks: Sequence[str]) -> None:
 # -- Collecting raw results --------------------------------------------------------------------------
 
 
-def without_local_paths(config: dict) -> dict:
-    """``config`` with an absolute ``data.root`` and ``runs_root`` replaced by the default job's relative folders
-    (``datasets``, ``runs``): where a run lay on the machine that trained it says nothing of its results."""
-    config = json.loads(json.dumps(config))
-    if Path(str(config.get("data", {}).get("root", ""))).is_absolute():
-        config["data"]["root"] = "datasets"
-    if Path(str(config.get("runs_root", ""))).is_absolute():
-        config["runs_root"] = "runs"
-    return config
-
-
 def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[str]:
     """Copy the finished runs of ``src`` into ``out/runs`` (logs gzip-compressed; checkpoints only for
     the run names in ``keep_checkpoint``); returns the names copied. Runs already there are skipped.
 
     ``weights.csv`` (TAR's weights along training demonstrations, the largest file of a run) is kept for
     seed 0 only, the run an analysis of weights reads; every run's summary and ``metrics.csv`` keep its
-    weight statistics (largest weight, ESS). The machine's folders in the config (``data.root``,
-    ``runs_root``) are written as the default job's relative ones (:func:`without_local_paths`).
+    weight statistics (largest weight, ESS). The machine's folders in the config (``data.root``, ``runs_root``,
+    ``init.from``) and summary are written relative to the repository (:func:`tar_rl.runs.portable_summary`).
 
     Each copy is named by its identity as this code computes it from the run's config (a run trained
     by code that named runs otherwise gets its current name; its summary's ``run_name`` follows)."""
@@ -429,13 +420,15 @@ def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[s
         target = out / "runs" / name
         if (target / "summary.json").is_file():
             continue
+        try:
+            config = runs.portable_config(yaml.safe_load((run / runs.CONFIG_FILE).read_text()), REPO)
+            summary = runs.portable_summary(summary, REPO)
+        except ValueError as err:
+            raise SystemExit(f"collect: {run.name}: {err}") from None
         tmp = target.with_name(f".{name}.tmp")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        config = without_local_paths(yaml.safe_load((run / runs.CONFIG_FILE).read_text()))
         (tmp / runs.CONFIG_FILE).write_text(yaml.safe_dump(config, sort_keys=False))
-        if "config" in summary:
-            summary = {**summary, "config": without_local_paths(summary["config"])}
         write_json_atomic({**summary, "run_name": name}, tmp / runs.SUMMARY_FILE)
         for log in PACKED:
             if log == runs.WEIGHTS_FILE and summary.get("seed", 0) != 0:

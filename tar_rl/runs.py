@@ -28,10 +28,13 @@ from tar_rl.io import save_torch_atomic, write_csv_atomic
 from tar_rl.metrics import REQUIRED_COLUMNS, as_percent
 
 __all__ = [
+    "CHECKOUT_FOLDERS",
     "CHECKPOINT",
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_KEYS",
     "CONFIG_FILE",
+    "CONFIG_FOLDERS",
+    "CONFIG_PATHS",
     "METRICS_COLUMNS",
     "METRICS_FILE",
     "NOT_IDENTITY",
@@ -50,6 +53,9 @@ __all__ = [
     "last_metric",
     "load_checkpoint",
     "machine",
+    "portable_config",
+    "portable_path",
+    "portable_summary",
     "print_table",
     "rollout_records",
     "run_name",
@@ -118,6 +124,96 @@ NOT_IDENTITY = (
     ("runs_root",),
     ("run_dir",),
 )
+
+
+# -- Paths in tracked files: relative to the repository, never the machine's --------------------------------
+#: The folders a checkout holds when it runs the default job from its root: ``data.root``, ``runs_root`` and
+#: ``tar-rl report``'s output (the repository's ``.gitignore`` lists them).
+CHECKOUT_FOLDERS: tuple[str, ...] = ("datasets", "runs", "report")
+#: The settings of a config that name the machine's files; none is part of a run's identity (:data:`NOT_IDENTITY`).
+CONFIG_PATHS: tuple[tuple[str, ...], ...] = (("data", "root"), ("runs_root",), ("init", "from"), ("run_dir",))
+#: The folder settings of a config and the default job's folder each stands for.
+CONFIG_FOLDERS: dict[tuple[str, ...], str] = {("data", "root"): "datasets", ("runs_root",): "runs"}
+
+
+def portable_path(path: str, root: str | Path) -> str:
+    """``path`` as a tracked file records it: relative to the repository's root, ``root``.
+
+    A relative path is kept. An absolute path inside ``root`` is written relative to it; any other absolute path
+    from its first component that names a folder of a checkout (an entry of ``root`` or one of
+    :data:`CHECKOUT_FOLDERS`): ``/elsewhere/datasets`` is ``datasets``, ``/other/checkout/benchmarks/results`` is
+    ``benchmarks/results``, ``/scratch/study/runs/<run>`` is ``runs/<run>``.
+
+    Raises:
+        ValueError: ``path`` is absolute, outside ``root``, and names no folder of a checkout.
+    """
+    pure = Path(path)
+    if not pure.is_absolute():
+        return path
+    root = Path(root)
+    if pure.is_relative_to(root):
+        return pure.relative_to(root).as_posix() or "."
+    folders = {*CHECKOUT_FOLDERS, *(p.name for p in root.iterdir() if not p.name.startswith("."))}
+    for i, part in enumerate(pure.parts):
+        if part in folders:
+            return Path(*pure.parts[i:]).as_posix()
+    raise ValueError(
+        f"{path} lies outside the repository ({root}) and in none of a checkout's folders "
+        f"({', '.join(sorted(folders))}): a tracked file cannot name it relative to the repository"
+    )
+
+
+def _portable_setting(keys: tuple[str, ...], value: str, root: str | Path, runs_root) -> str:
+    """The path setting ``keys`` of a config whose ``runs_root`` is ``runs_root``, by :func:`portable_config`'s rule."""
+    try:
+        return portable_path(value, root)
+    except ValueError as err:
+        if keys in CONFIG_FOLDERS:
+            return CONFIG_FOLDERS[keys]
+        if isinstance(runs_root, str) and runs_root and Path(value).is_relative_to(runs_root):
+            return (Path(CONFIG_FOLDERS[("runs_root",)]) / Path(value).relative_to(runs_root)).as_posix()
+        raise ValueError(f"{'.'.join(keys)}: {err}") from None
+
+
+def portable_config(config: dict, root: str | Path) -> dict:
+    """A copy of ``config`` with its :data:`CONFIG_PATHS` written relative to the repository ``root`` (what a
+    tracked copy of a run's config records; the run's identity, which leaves them out, is unchanged).
+
+    Each is written by :func:`portable_path`; where that cannot place it, ``data.root`` and ``runs_root`` are the
+    default job's folders they stand for (:data:`CONFIG_FOLDERS`), and a run directory under ``runs_root``
+    (``init.from``, ``run_dir``) is written under ``runs``.
+
+    Raises:
+        ValueError: a run directory outside ``runs_root`` cannot be placed either, naming the setting.
+    """
+    runs_root = config.get("runs_root")
+    config = copy.deepcopy(config)
+    for keys in CONFIG_PATHS:
+        node = config
+        for key in keys[:-1]:
+            node = node.get(key) if isinstance(node, dict) else None
+        if isinstance(node, dict) and isinstance(node.get(keys[-1]), str) and node[keys[-1]]:
+            node[keys[-1]] = _portable_setting(keys, node[keys[-1]], root, runs_root)
+    return config
+
+
+def portable_summary(summary: dict, root: str | Path) -> dict:
+    """A copy of a run's summary (:data:`SUMMARY_FILE`) with the paths it records written relative to the
+    repository ``root``: its config's (:func:`portable_config`) and a post-training run's source checkpoint
+    (``init.from``, by the same rule as the config's).
+
+    Raises:
+        ValueError: one of them cannot be placed, naming the setting.
+    """
+    summary = copy.deepcopy(summary)
+    config = summary.get("config")
+    runs_root = config.get("runs_root") if isinstance(config, dict) else None
+    if isinstance(config, dict):
+        summary["config"] = portable_config(config, root)
+    init = summary.get("init")
+    if isinstance(init, dict) and isinstance(init.get("from"), str) and init["from"]:
+        init["from"] = _portable_setting(("init", "from"), init["from"], root, runs_root)
+    return summary
 
 
 def _differences(config: dict, defaults: dict) -> dict:
