@@ -142,7 +142,7 @@ def portable_path(path: str, root: str | Path) -> str:
     A relative path is kept. An absolute path inside ``root`` is written relative to it; any other absolute path
     from its first component that names a folder of a checkout (an entry of ``root`` or one of
     :data:`CHECKOUT_FOLDERS`): ``/elsewhere/datasets`` is ``datasets``, ``/other/checkout/benchmarks/results`` is
-    ``benchmarks/results``, ``/scratch/study/runs/<run>`` is ``runs/<run>``.
+    ``benchmarks/results``, ``/elsewhere/study/runs/<run>`` is ``runs/<run>``.
 
     Raises:
         ValueError: ``path`` is absolute, outside ``root``, and names no folder of a checkout.

@@ -36,16 +36,16 @@ policy:
 data:
   root: /elsewhere/datasets
 init:
-  from: /scratch/study/runs/uniform-mlp-s0-b38746e7
+  from: /elsewhere/study/runs/uniform-mlp-s0-b38746e7
 seed: 0
-runs_root: /scratch/study/runs
+runs_root: /elsewhere/study/runs
 run_dir: ''
 """
 
 
 def test_a_config_is_rewritten_line_for_line(tool, tmp_path):
     new, unplaced = tool.rewrite(CONFIG, tmp_path)
-    expected = CONFIG.replace("/elsewhere/datasets", "datasets").replace("/scratch/study/runs", "runs")
+    expected = CONFIG.replace("/elsewhere/datasets", "datasets").replace("/elsewhere/study/runs", "runs")
     assert new == expected and unplaced == []
     assert "  from: runs/uniform-mlp-s0-b38746e7\n" in new
     tool.check_run_file("config.yaml", CONFIG, new, tmp_path)  # only the paths changed
@@ -55,7 +55,7 @@ def test_commands_and_reports_are_rewritten_and_other_slashes_kept(tool, tmp_pat
     (tmp_path / "benchmarks").mkdir()
     text = (
         '{"command": "python benchmarks/x.py --out /ck/benchmarks/results/p --data-root /ck/datasets"}\n'
-        "wrote: /tmp/a/report/comparison.csv, /tmp/a/report/fig.png\n"
+        "wrote: /out/a/report/comparison.csv, /out/a/report/fig.png\n"
         "see https://github.com/o/r/blob/main/x.md, 3/4 of runs, success / NEPS, <folder>/buffer/storage\n"
     )
     new, unplaced = tool.rewrite(text, tmp_path)
@@ -70,10 +70,10 @@ def test_commands_and_reports_are_rewritten_and_other_slashes_kept(tool, tmp_pat
 
 
 def test_a_path_it_cannot_place_is_kept_and_named(tool, tmp_path):
-    text = "wrote: /tmp/rep-heads/comparison.csv and /elsewhere/runs/a\n"
+    text = "wrote: /out/rep-heads/comparison.csv and /elsewhere/runs/a\n"
     new, unplaced = tool.rewrite(text, tmp_path)
-    assert new == "wrote: /tmp/rep-heads/comparison.csv and runs/a\n"
-    assert unplaced == ["/tmp/rep-heads/comparison.csv"]
+    assert new == "wrote: /out/rep-heads/comparison.csv and runs/a\n"
+    assert unplaced == ["/out/rep-heads/comparison.csv"]
 
 
 def test_a_rewrite_that_changes_a_result_is_refused(tool, tmp_path):
@@ -95,9 +95,9 @@ def test_no_committed_file_is_left_to_rewrite(tool, capsys):
 def test_provenance_records_the_commands_paths_relative_to_the_repository():
     bench = _load("paper_experiments")
     argv = ["budget", "--out", str(REPO / "benchmarks" / "results" / "paper-cpu"), "--data-root", "/elsewhere/datasets"]
-    argv += ["--set", f"data.path={REPO}/demos", "--set", "optim.steps=3", "--jobs", "/scratch/unplaced"]
+    argv += ["--set", f"data.path={REPO}/demos", "--set", "optim.steps=3", "--jobs", "/elsewhere/unplaced"]
     command = bench.provenance(bench.SCALES["ci"], argv)["command"]
     assert command == (
         "python benchmarks/paper_experiments.py budget --out benchmarks/results/paper-cpu --data-root datasets "
-        "--set data.path=demos --set optim.steps=3 --jobs /scratch/unplaced"
+        "--set data.path=demos --set optim.steps=3 --jobs /elsewhere/unplaced"
     )

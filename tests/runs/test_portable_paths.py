@@ -26,9 +26,9 @@ def root(tmp_path):
         ("{root}/datasets", "datasets"),
         ("{root}", "."),
         ("/elsewhere/datasets", "datasets"),  # a checkout's folders (CHECKOUT_FOLDERS)
-        ("/scratch/study/runs", "runs"),
-        ("/scratch/study/runs/uniform-mlp-s0-b38746e7/checkpoint.pt", "runs/uniform-mlp-s0-b38746e7/checkpoint.pt"),
-        ("/tmp/x/report/comparison.csv", "report/comparison.csv"),
+        ("/elsewhere/study/runs", "runs"),
+        ("/elsewhere/study/runs/uniform-mlp-s0-b38746e7/checkpoint.pt", "runs/uniform-mlp-s0-b38746e7/checkpoint.pt"),
+        ("/out/x/report/comparison.csv", "report/comparison.csv"),
         ("/other/checkout/benchmarks/results/paper-cpu", "benchmarks/results/paper-cpu"),  # an entry of the root
         ("/a/datasets/runs/b", "datasets/runs/b"),  # from the first such component
     ],
@@ -37,7 +37,7 @@ def test_paths_are_written_from_the_repository_root(root, path, expected):
     assert portable_path(path.format(root=root), root) == expected
 
 
-@pytest.mark.parametrize("path", ["/scratch/cache", "/home/me/metaworld", "/other/checkout/README.md.bak"])
+@pytest.mark.parametrize("path", ["/elsewhere/cache", "/opt/me/metaworld", "/other/checkout/README.md.bak"])
 def test_a_path_in_no_folder_of_a_checkout_is_refused_naming_it(root, path):
     with pytest.raises(ValueError, match=f"^{path} lies outside the repository"):
         portable_path(path, root)
@@ -56,8 +56,8 @@ def _config(**paths) -> dict:
 
 
 def test_a_config_names_its_folders_relative_and_keeps_its_run_name(root):
-    source = "/scratch/study/runs/uniform-mlp-s0-b38746e7"
-    config = _config(data__root="/elsewhere/datasets", runs_root="/scratch/study/runs", init__from=source)
+    source = "/elsewhere/study/runs/uniform-mlp-s0-b38746e7"
+    config = _config(data__root="/elsewhere/datasets", runs_root="/elsewhere/study/runs", init__from=source)
     config["init"]["source"] = "uniform-mlp-s0-b38746e7"  # what the recipe's validate fills in
     config["run_dir"] = f"{root}/benchmarks/results/r/runs/x"
     portable = portable_config(config, root)
@@ -73,23 +73,23 @@ def test_a_config_names_its_folders_relative_and_keeps_its_run_name(root):
 
 
 def test_folders_in_no_folder_of_a_checkout_are_the_default_jobs_and_runs_lie_under_runs(root):
-    config = _config(data__root="/scratch/cache", runs_root="/scratch/sweep", init__from="/scratch/sweep/src/ck.pt")
+    config = _config(data__root="/elsewhere/cache", runs_root="/elsewhere/sweep", init__from="/elsewhere/sweep/s/c.pt")
     config["init"]["source"] = "src"
-    config["run_dir"] = "/scratch/sweep/tar-mlp-s0-1"
+    config["run_dir"] = "/elsewhere/sweep/tar-mlp-s0-1"
     portable = portable_config(config, root)
     assert portable["data"]["root"] == "datasets" and portable["runs_root"] == "runs"
-    assert portable["init"]["from"] == "runs/src/ck.pt" and portable["run_dir"] == "runs/tar-mlp-s0-1"
+    assert portable["init"]["from"] == "runs/s/c.pt" and portable["run_dir"] == "runs/tar-mlp-s0-1"
 
 
 def test_a_run_directory_that_cannot_be_placed_is_refused_naming_the_setting(root):
-    config = _config(runs_root="/scratch/sweep", init__from="/scratch/elsewhere/src")
-    with pytest.raises(ValueError, match=r"^init\.from: /scratch/elsewhere/src lies outside"):
+    config = _config(runs_root="/elsewhere/sweep", init__from="/elsewhere/other/src")
+    with pytest.raises(ValueError, match=r"^init\.from: /elsewhere/other/src lies outside"):
         portable_config(config, root)
 
 
 def test_a_summary_names_its_config_and_source_checkpoint_relative(root):
-    config = _config(data__root="/elsewhere/datasets", runs_root="/scratch/study/runs")
-    checkpoint = "/scratch/study/runs/uniform-mlp-s0-b38746e7/checkpoint.pt"
+    config = _config(data__root="/elsewhere/datasets", runs_root="/elsewhere/study/runs")
+    checkpoint = "/elsewhere/study/runs/uniform-mlp-s0-b38746e7/checkpoint.pt"
     summary = {"run_name": "n", "final": [{"success": 0.5}], "init": {"from": checkpoint, "source_step": 40000}}
     summary["config"] = config
     portable = portable_summary(summary, root)
@@ -97,6 +97,6 @@ def test_a_summary_names_its_config_and_source_checkpoint_relative(root):
     assert portable["config"] == portable_config(config, root)
     assert portable["final"] == [{"success": 0.5}] and portable["run_name"] == "n"
     assert portable_summary({"run_name": "n", "init": None}, root) == {"run_name": "n", "init": None}
-    config = _config(runs_root="/scratch/sweep")
-    summary = {"init": {"from": "/scratch/sweep/src/checkpoint.pt"}, "config": config}  # no checkout folder
+    config = _config(runs_root="/elsewhere/sweep")
+    summary = {"init": {"from": "/elsewhere/sweep/src/checkpoint.pt"}, "config": config}  # no checkout folder
     assert portable_summary(summary, root)["init"]["from"] == "runs/src/checkpoint.pt"
