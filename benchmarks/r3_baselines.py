@@ -15,7 +15,8 @@ interrupted ones):
   difference of the overall success to uniform with its 95% CI and p, Holm over the baseline rows), beside
   R3's uniform and TAR rows, recomputed from the runs (``table.md``, ``table.csv``, ``paired.csv``, written
   into ``<out>`` or, with ``--tables DIR``, into ``DIR``).
-* ``collect --from DIR``: copy finished runs into ``<out>/runs`` (config, summary, compressed logs).
+* ``collect --from DIR``: copy finished runs into ``<out>/runs`` (config, summary, compressed logs; never
+  ``weights.csv``, which no analysis of the baselines reads).
 
 **Pairing with R3's uniform runs.** The baselines are trained at a later commit than R3's runs, and the study
 pairs only runs of one commit and machine. Training is deterministic on the CPU, so ``run`` trains uniform's

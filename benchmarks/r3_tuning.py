@@ -22,7 +22,7 @@ runs and resumes interrupted ones):
   ``decision.csv``, and how many final uniform runs reproduce R3's committed ones), all recomputed from the runs
   and written into ``<out>`` or ``DIR``.
 * ``collect --from DIR``: copy the finished runs of a runs folder into ``<out>/runs`` (config, summary,
-  compressed logs; never checkpoints).
+  compressed logs; never ``weights.csv``, which no analysis of the tuning reads, nor checkpoints).
 
 The ``ci`` scale runs the same commands on two tasks for a few steps with a smaller grid (the tests' size).
 """

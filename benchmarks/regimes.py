@@ -25,8 +25,9 @@ finished runs and resumes interrupted ones):
   machines are refused; a chunked-heads regime is tabled over the seeds every arm has finished, and with
   ``--complete`` a missing run of its plan is refused, named.
 * ``collect --from DIR``: copy the finished runs of a runs folder (e.g. a sweep trained in a separate
-  worktree) into ``<out>/runs``: config, summary and the logs (compressed), never checkpoints except
-  the pretrained source's, which the R1 runs start from.
+  worktree) into ``<out>/runs``: config, summary and the logs (compressed), ``weights.csv`` only for the runs
+  an analysis reads (R3's, and seed 0 of each arm of R4 and R5), never checkpoints except the pretrained
+  source's, which the R1 runs start from.
 
 The ``ci`` scale runs the same commands on two or three tasks for a few steps (what the tests run).
 """
@@ -395,14 +396,24 @@ def check_started(out: Path, tasks: Sequence[str]) -> None:
 # -- Collecting raw results --------------------------------------------------------------------------
 
 
-def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[str]:
+def weights_read(study: Study, planner: Planner) -> list[str]:
+    """The runs of the study whose ``weights.csv`` an analysis reads: R3's, every seed (``r3_diagnosis.py``), and
+    seed 0 of each arm of the chunked-heads regimes (R4, R5: the weights of each arm on one seed)."""
+    names = [spec.run_dir.name for spec in r3_specs(study, planner)]
+    for label, _, _ in study.chunked_heads:
+        names += [group[0].run_dir.name for group in chunked_specs(study, planner, label).values() if group]
+    return names
+
+
+def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = (), keep_weights: Sequence[str] = ()) -> list[str]:
     """Copy the finished runs of ``src`` into ``out/runs`` (logs gzip-compressed; checkpoints only for
     the run names in ``keep_checkpoint``); returns the names copied. Runs already there are skipped.
 
-    ``weights.csv`` (TAR's weights along training demonstrations, the largest file of a run) is kept for
-    seed 0 only, the run an analysis of weights reads; every run's summary and ``metrics.csv`` keep its
-    weight statistics (largest weight, ESS). The machine's folders in the config (``data.root``, ``runs_root``,
-    ``init.from``) and summary are written relative to the repository (:func:`tar_rl.runs.portable_summary`).
+    ``weights.csv`` (TAR's weights along training demonstrations, the largest file of a run) is kept only for
+    the run names in ``keep_weights``, the runs an analysis reads (:func:`weights_read`); every run's summary
+    (weight per episode-time bin) and ``metrics.csv`` (largest weight, ESS) keep its weight statistics. The
+    machine's folders in the config (``data.root``, ``runs_root``, ``init.from``) and summary are written relative
+    to the repository (:func:`tar_rl.runs.portable_summary`).
 
     Each copy is named by its identity as this code computes it from the run's config (a run trained
     by code that named runs otherwise gets its current name; its summary's ``run_name`` follows)."""
@@ -431,7 +442,7 @@ def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = ()) -> list[s
         (tmp / runs.CONFIG_FILE).write_text(yaml.safe_dump(config, sort_keys=False))
         write_json_atomic({**summary, "run_name": name}, tmp / runs.SUMMARY_FILE)
         for log in PACKED:
-            if log == runs.WEIGHTS_FILE and summary.get("seed", 0) != 0:
+            if log == runs.WEIGHTS_FILE and name not in keep_weights:
                 continue
             if (run / log).is_file():
                 with open(run / log, "rb") as f_in, gzip.GzipFile(tmp / f"{log}.gz", "wb", mtime=0) as f_out:
@@ -836,7 +847,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         if not args.source:
             raise SystemExit("regimes: collect needs --from DIR (a runs folder)")
-        names = collect(Path(args.source), out, keep_checkpoint=[source_spec(study, planner).run_dir.name])
+        keep = [source_spec(study, planner).run_dir.name]
+        names = collect(Path(args.source), out, keep_checkpoint=keep, keep_weights=weights_read(study, planner))
         print(f"copied {len(names)} finished run(s) into {out / 'runs'}: " + ", ".join(names))
         return 0
     if args.command == "r1":

@@ -285,9 +285,12 @@ def test_an_arm_missing_a_seed_is_left_out_and_refused_by_the_complete_table(chu
     assert f"- R5: 1 run(s) ({gentle})" in md
 
 
-def test_collect_keeps_the_weights_of_seed_0_only(tmp_path):
+def test_collect_keeps_the_weights_of_the_runs_an_analysis_reads_only(tmp_path):
+    from tar_rl.recipes import run_name
+
     regimes = _load()
     src = tmp_path / "src"
+    read = []
     for seed in (0, 1):
         run = src / f"run{seed}"
         run.mkdir(parents=True)
@@ -297,15 +300,28 @@ def test_collect_keeps_the_weights_of_seed_0_only(tmp_path):
         (run / "summary.json").write_text(json.dumps({"finished": True, "seed": seed, "config": config}))
         for name in ("eval_rollouts.csv", "metrics.csv", "weights.csv"):
             (run / name).write_text("a\n1\n")
-    names = regimes.collect(src, tmp_path / "out")
+        read += [run_name(config)] if seed == 0 else []
+    names = regimes.collect(src, tmp_path / "out", keep_weights=read)
     by_seed = {json.loads((tmp_path / "out" / "runs" / n / "summary.json").read_text())["seed"]: n for n in names}
     kept = {seed: sorted(p.name for p in (tmp_path / "out" / "runs" / n).iterdir()) for seed, n in by_seed.items()}
     assert "weights.csv.gz" in kept[0] and "weights.csv.gz" not in kept[1]
     assert "metrics.csv.gz" in kept[1] and "eval_rollouts.csv.gz" in kept[1]
+    regimes.collect(src, tmp_path / "none")  # no run named: no weights, whatever the seed
+    assert not list((tmp_path / "none").glob("runs/*/weights.csv.gz"))
     for name in names:  # the copies name the default job's relative folders, not this machine's
         folder = tmp_path / "out" / "runs" / name
         for text in ((folder / "config.yaml").read_text(), (folder / "summary.json").read_text()):
             assert str(tmp_path) not in text and "datasets" in text and "runs" in text
+
+
+def test_the_weights_kept_are_r3s_and_seed_0_of_each_chunked_arm(tmp_path):
+    regimes = _load()
+    study = regimes.STUDIES["ci"]
+    names = regimes.weights_read(study, regimes.Planner(study.scale, tmp_path, str(tmp_path)))
+    r3 = [f"{objective}-mlp-s{seed}" for objective in ("uniform", "tar") for seed in study.scale.seeds]
+    chunked = [f"{arm}-{head}-s0" for head in ("act", "flow") for arm in ("uniform", "tar", "tar")]  # tar_gentle: tar
+    assert sorted(n.rsplit("-", 1)[0] for n in names) == sorted(r3 + chunked)
+    assert len(set(names)) == len(names)  # tar_gentle's runs differ from tar's by their settings
 
 
 def _screen_dir(out: Path) -> Path:
