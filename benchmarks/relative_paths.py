@@ -34,24 +34,54 @@ from tar_rl.io import atomic_write
 REPO = Path(__file__).resolve().parent.parent
 #: The plain-text files it rewrites.
 TEXT_SUFFIXES = (".yaml", ".yml", ".json", ".md", ".csv", ".txt")
-#: An absolute path: a ``/`` that does not continue a word, a path or a placeholder (``<folder>``, ``{x}``), and
-#: two or more components.
-ABSOLUTE = re.compile(r"(?<![\w.~$}>/-])/[\w.+@-]+(?:/[\w.+@-]+)+")
+#: An absolute path: a ``/`` that does not continue a word, a path, a glob or a placeholder (``<folder>``, ``{x}``),
+#: and its components.
+ABSOLUTE = re.compile(r"(?<![\w.~$}>*/-])/[\w.+@-]+(?:/[\w.+@-]+)*")
 
 
-def rewrite(text: str, root: Path = REPO) -> tuple[str, list[str]]:
-    """``text`` with its absolute paths written relative to the repository ``root``, and the paths it cannot
-    place (left as they are)."""
+def rewrite(text: str, root: Path = REPO, known: dict[str, str] | None = None) -> tuple[str, list[str]]:
+    """``text`` with its absolute paths written relative to the repository ``root`` (those in ``known`` as it says,
+    the others by :func:`tar_rl.runs.portable_path`), and the paths it cannot place (left as they are)."""
     unplaced: list[str] = []
 
     def relative(match: re.Match) -> str:
+        path = match.group()
+        if known and path in known:
+            return known[path]
         try:
-            return runs.portable_path(match.group(), root)
+            return runs.portable_path(path, root)
         except ValueError:
-            unplaced.append(match.group())
-            return match.group()
+            unplaced.append(path)
+            return path
 
     return ABSOLUTE.sub(relative, text), unplaced
+
+
+def _portable_run_file(name: str, text: str, root: Path):
+    """A run's ``config.yaml`` or ``summary.json`` as read, and as a tracked copy records it (None, None for
+    other files)."""
+    if name == runs.CONFIG_FILE:
+        before = yaml.safe_load(text)
+        return before, runs.portable_config(before, root) if isinstance(before, dict) else before
+    if name == runs.SUMMARY_FILE:
+        before = json.loads(text)
+        return before, runs.portable_summary(before, root) if isinstance(before, dict) else before
+    return None, None
+
+
+def _changed_strings(before, after) -> dict[str, str]:
+    if isinstance(before, dict) and isinstance(after, dict):
+        return {k: v for key in before for k, v in _changed_strings(before[key], after.get(key)).items()}
+    return {before: after} if isinstance(before, str) and isinstance(after, str) and before != after else {}
+
+
+def run_file_paths(name: str, text: str, root: Path = REPO) -> dict[str, str]:
+    """The paths a run's ``config.yaml`` or ``summary.json`` records, each with what
+    :func:`tar_rl.runs.portable_config` and :func:`tar_rl.runs.portable_summary` write for it (empty for other
+    files): a ``data.root`` in no folder of a checkout is ``datasets`` there, which :func:`rewrite` alone cannot
+    tell."""
+    before, after = _portable_run_file(name, text, root)
+    return _changed_strings(before, after)
 
 
 def check_run_file(name: str, old: str, new: str, root: Path = REPO) -> None:
@@ -62,14 +92,10 @@ def check_run_file(name: str, old: str, new: str, root: Path = REPO) -> None:
     Raises:
         ValueError: naming the file when it does.
     """
-    if name == runs.CONFIG_FILE:
-        before, after = yaml.safe_load(old), yaml.safe_load(new)
-        expected = runs.portable_config(before, root) if isinstance(before, dict) else before
-    elif name == runs.SUMMARY_FILE:
-        before, after = json.loads(old), json.loads(new)
-        expected = runs.portable_summary(before, root) if isinstance(before, dict) else before
-    else:
+    if name not in (runs.CONFIG_FILE, runs.SUMMARY_FILE):
         return
+    _, expected = _portable_run_file(name, old, root)
+    after = yaml.safe_load(new) if name == runs.CONFIG_FILE else json.loads(new)
     if after != expected:
         raise ValueError("rewriting its paths would change more than the paths a run's files record")
 
@@ -95,7 +121,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             old = path.read_bytes().decode("utf-8")
         except UnicodeDecodeError:
             continue  # not plain text
-        new, missed = rewrite(old)
+        try:
+            known = run_file_paths(path.name, old)
+        except ValueError as err:
+            unplaced.append(f"{rel}: {err}")
+            continue
+        new, missed = rewrite(old, REPO, known)
         unplaced += [f"{rel}: {p}" for p in missed]
         if new == old:
             continue

@@ -153,7 +153,8 @@ def portable_path(path: str, root: str | Path) -> str:
     root = Path(root)
     if pure.is_relative_to(root):
         return pure.relative_to(root).as_posix() or "."
-    folders = {*CHECKOUT_FOLDERS, *(p.name for p in root.iterdir() if not p.name.startswith("."))}
+    entries = root.iterdir() if root.is_dir() else ()
+    folders = {*CHECKOUT_FOLDERS, *(p.name for p in entries if not p.name.startswith("."))}
     for i, part in enumerate(pure.parts):
         if part in folders:
             return Path(*pure.parts[i:]).as_posix()

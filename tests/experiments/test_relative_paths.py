@@ -76,6 +76,16 @@ def test_a_path_it_cannot_place_is_kept_and_named(tool, tmp_path):
     assert unplaced == ["/out/rep-heads/comparison.csv"]
 
 
+def test_a_run_files_folders_in_no_folder_of_a_checkout_are_the_default_jobs(tool, tmp_path):
+    config = CONFIG.replace("/elsewhere/datasets", "/cache/mw").replace("/elsewhere/study/runs", "/sweep")
+    new, unplaced = tool.rewrite(config, tmp_path, tool.run_file_paths("config.yaml", config, tmp_path))
+    assert unplaced == [] and new == CONFIG.replace("/elsewhere/datasets", "datasets").replace(
+        "/elsewhere/study/runs", "runs"
+    )
+    tool.check_run_file("config.yaml", config, new, tmp_path)
+    assert tool.run_file_paths("table.md", config, tmp_path) == {}
+
+
 def test_a_rewrite_that_changes_a_result_is_refused(tool, tmp_path):
     summary = {"run_name": "n", "final": [{"success": 0.5}], "config": yaml.safe_load(CONFIG)}
     old = json.dumps(summary, indent=1)
