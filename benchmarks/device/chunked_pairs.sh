@@ -18,13 +18,14 @@ regime=$1 seeds=$2 jobs=$3 cores=$4 budget=$5
 t0=$(date +%s)
 log() { echo "[$(( $(date +%s) - t0 ))s] $*"; }
 export PYTHONUNBUFFERED=1
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 2
-export PYTHONPATH=/tmp/site
-rm -rf /tmp/study && cp -r wt-gpu /tmp/study || exit 2
+work=$(mktemp -d) || exit 2  # the packages, the study's tree, the datasets and the runs
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $work/site .whl/*.whl || exit 2
+export PYTHONPATH=$work/site
+rm -rf $work/study && cp -r wt-gpu $work/study || exit 2
 # The study's runs record the commit of the code they run from (git rev-parse HEAD in the package's folder).
-(cd /tmp/study && git init -q && cat COMMIT > .git/HEAD && rm COMMIT) || exit 2
+(cd $work/study && git init -q && cat COMMIT > .git/HEAD && rm COMMIT) || exit 2
 # The tree imports unbuilt: tar_rl/objectives, collectors and recipes are links to the root folders.
-export PYTHONPATH=/tmp/study:/tmp/site
+export PYTHONPATH=$work/study:$work/site
 python3 -P - <<'PY' || exit 2
 import torch, torchrl, tensordict, metaworld, mujoco
 from tar_rl.runs import git_commit, machine
@@ -42,34 +43,34 @@ pack() {  # the finished runs (their summary says so), without checkpoints, into
   tar czf "$OUT/logs.tmp" -C "$1" logs 2>/dev/null && mv "$OUT/logs.tmp" "$OUT/logs.tgz"
 }
 drive() {  # SCALE SEEDS OUTDIR STARTED
-  python3 -P benchmarks/device/chunked_pairs.py --tree /tmp/study --regime "$regime" --seeds "$2" --out "$3" \
-    --data-root /tmp/data --jobs "$jobs" --cores "$cores" --scale "$1" ${4:+--started "$4"}
+  python3 -P benchmarks/device/chunked_pairs.py --tree $work/study --regime "$regime" --seeds "$2" --out "$3" \
+    --data-root $work/data --jobs "$jobs" --cores "$cores" --scale "$1" ${4:+--started "$4"}
 }
 
 # The smoke test: the ci scale's seed 0, its plan digest recorded here (the ci scale has no record).
-ci_digest=$(python3 -P benchmarks/device/chunked_pairs.py --tree /tmp/study --regime "$regime" --seeds 0 \
-  --out /tmp/ci --data-root /tmp/data --scale ci --digest) || exit 3
-echo "{\"${regime^^}\": \"$ci_digest\"}" > /tmp/ci_started.json
-drive ci 0 /tmp/ci /tmp/ci_started.json > /tmp/ci.log 2>&1
+ci_digest=$(python3 -P benchmarks/device/chunked_pairs.py --tree $work/study --regime "$regime" --seeds 0 \
+  --out $work/ci --data-root $work/data --scale ci --digest) || exit 3
+echo "{\"${regime^^}\": \"$ci_digest\"}" > $work/ci_started.json
+drive ci 0 $work/ci $work/ci_started.json > $work/ci.log 2>&1
 rc=$?
-pack /tmp/ci ci_runs.tgz
-log "smoke test exit $rc"; tail -5 /tmp/ci.log
-[ $rc -eq 0 ] || { tail -40 /tmp/ci/logs/*.log; exit 3; }
+pack $work/ci ci_runs.tgz
+log "smoke test exit $rc"; tail -5 $work/ci.log
+[ $rc -eq 0 ] || { tail -40 $work/ci/logs/*.log; exit 3; }
 
-mkdir -p /tmp/out
-drive cpu "$seeds" /tmp/out > "$OUT/driver.log" 2>&1 &
+mkdir -p $work/out
+drive cpu "$seeds" $work/out > "$OUT/driver.log" 2>&1 &
 pid=$!
-while kill -0 $pid 2>/dev/null; do sleep 10; pack /tmp/out runs.tgz; done
+while kill -0 $pid 2>/dev/null; do sleep 10; pack $work/out runs.tgz; done
 wait $pid
 rc=$?
-pack /tmp/out runs.tgz
+pack $work/out runs.tgz
 log "study runs exit $rc"; tail -20 "$OUT/driver.log"
 nvidia-smi --query-gpu=name,memory.used --format=csv,noheader
 
 left=$(( budget - ($(date +%s) - t0) - 20 ))
 if [ $left -gt 60 ]; then
   log "bench_heads for at most ${left}s"
-  (cd /tmp/study && timeout $left python3 -P benchmarks/bench_heads.py --device cuda --heads act,flow,octo_linear,octo_diffusion \
+  (cd $work/study && timeout $left python3 -P benchmarks/bench_heads.py --device cuda --heads act,flow,octo_linear,octo_diffusion \
     --reps 10 --out "$OUT/heads_cuda.csv") > "$OUT/bench.log" 2>&1
   log "bench_heads exit $?"; tail -30 "$OUT/bench.log"
 fi
