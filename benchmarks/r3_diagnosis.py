@@ -52,11 +52,10 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from benchmarks.paper_analysis import plot_weight_phases
+from benchmarks.studies.compare import check_pairs
+from benchmarks.studies.regimes import BASELINE, SIZES, TREATMENT
 from tar_rl.report import PHASES, Run, load_run, phase_labels
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # regimes.py and paper_analysis.py beside this script
-from paper_analysis import plot_weight_phases
-from regimes import BASELINE, STUDIES, TREATMENT, check_pairs
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_RUNS = HERE / "results" / "regimes" / "runs"
@@ -86,7 +85,7 @@ def r3_settings() -> dict:
     """R3's defining settings (from the study's overrides in ``regimes.py``): head, tasks, demonstrations, steps
     (R4 and R5 share the last three with another head), and the training step at which TAR reaches full strength
     (the first recording step)."""
-    overrides = dict(o.split("=", 1) for o in STUDIES["cpu"].r3)
+    overrides = dict(o.split("=", 1) for o in SIZES["cpu"].r3)
     return {
         "policy.name": overrides["policy"],
         "data.tasks": yaml.safe_load(overrides["data.tasks"]),

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 import pandas as pd
@@ -13,8 +12,7 @@ import yaml
 from paths import REPO
 from run_helpers import write_run
 
-sys.path.insert(0, str(REPO / "benchmarks"))  # r3_diagnosis.py
-import r3_diagnosis as diag
+from benchmarks import r3_diagnosis as diag
 
 COMMITTED = REPO / "benchmarks" / "results" / "regimes" / "diagnosis"
 S, F = True, False
