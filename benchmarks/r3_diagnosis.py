@@ -52,7 +52,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from benchmarks.paper_analysis import plot_weight_phases
+from benchmarks.analysis.figures import plot_weight_phases
 from benchmarks.studies.compare import check_pairs
 from benchmarks.studies.regimes import BASELINE, SIZES, TREATMENT
 from tar_rl.report import PHASES, Run, load_run, phase_labels

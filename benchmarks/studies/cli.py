@@ -31,6 +31,7 @@ __all__ = ["RESULTS", "STUDIES", "Context", "Study", "main"]
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 #: The studies by name: the module that declares each (its ``STUDY``).
 STUDIES = {
+    "paper": "benchmarks.studies.paper",
     "regimes": "benchmarks.studies.regimes",
     "tuning": "benchmarks.studies.tuning",
     "baselines": "benchmarks.studies.baselines",

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import pytest
 from paths import REPO
 
-from benchmarks.studies import baselines, cli, regimes, tuning
+from benchmarks.studies import baselines, cli, paper, regimes, tuning
 from benchmarks.studies.core import Arm, Planner, Scale, Stage, plan_digest, seed_major
 from benchmarks.studies.records import check_started
 
@@ -129,7 +129,13 @@ def _baselines(scale: str) -> dict:
     return {"run": _names([uniform[0], *seed_major(baselines.stage(sizes).specs(planner))])}
 
 
-PLANS = {"regimes": _regimes, "tuning": _tuning, "baselines": _baselines}
+def _paper(scale: str) -> dict:
+    sizes = paper.SIZES[scale]
+    planner = Planner(sizes.scale, OUT, "datasets")
+    return {stage: _names(paper.stage_specs(sizes, planner, stage)) for stage in paper.STAGES}
+
+
+PLANS = {"regimes": _regimes, "tuning": _tuning, "baselines": _baselines, "paper": _paper}
 
 
 @pytest.mark.slow
