@@ -15,7 +15,7 @@
 * :mod:`~tar_rl.report.cli`: :func:`main`, the body of ``tar-rl report RUN_DIR... [--out DIR]``.
 
 The paper experiments' own tables and figures (Tables I and III, Figs. 3(c), 4 and 5 with phases,
-critical windows) are in ``benchmarks/paper_analysis.py``, built on these.
+critical windows) are in ``benchmarks/analysis`` and ``benchmarks/studies``, built on these.
 """
 
 from __future__ import annotations
