@@ -156,6 +156,38 @@ def plot_critical_windows(windows: pd.DataFrame, path: str | os.PathLike, captio
     return save_png(fig, path, caption or "critical windows")
 
 
+def _draw_demonstration(ax, one: pd.DataFrame, task: str, gripper: bool, phase_kw: dict) -> None:
+    """One panel of :func:`plot_weight_phases`: a demonstration's loss, weight, phases and gripper-closing step."""
+    t = one["t"].to_numpy()
+    loss, weight = one["loss"].to_numpy(dtype=float), one["weight"].to_numpy(dtype=float)
+    labels = phase_labels(one["gripper"].to_numpy(), **phase_kw)
+    ax_w = ax.twinx()
+    for a, b in true_spans(weight > 1.0):
+        ax.axvspan(t[a] - 0.5, t[b] + 0.5, color="C1", alpha=0.2, linewidth=0)
+    top = max(float(loss.max()), 1e-12)
+    for phase in PHASES:
+        for a, b in true_spans(labels == phase):
+            ax.axvspan(t[a] - 0.5, t[b] + 0.5, ymin=0, ymax=0.05, color=_PHASE_COLOURS[phase], alpha=0.9, linewidth=0)
+    ax.plot(t, loss, color="C0", linewidth=1.1)
+    ax_w.plot(t, weight, color="C3", linewidth=1.1)
+    ax_w.axhline(1.0, color="C3", linestyle=":", linewidth=0.8)
+    close = first_gripper_close(one["gripper"].to_numpy())
+    if close is not None:
+        ax.axvline(t[close], color="k", linestyle="--", linewidth=0.9)
+    ax.set_ylim(0, top * 1.1)
+    ax_w.set_ylim(bottom=0)
+    if gripper:
+        ax_g = ax.twinx()
+        ax_g.spines["right"].set_position(("axes", 1.12))
+        ax_g.plot(t, one["gripper"].to_numpy(dtype=float), color="0.5", linewidth=0.9, drawstyle="steps-mid")
+        ax_g.set_ylim(-1.3, 1.1)
+        ax_g.set_ylabel("gripper action", color="0.4", fontsize=8)
+    ax.set_ylabel("loss", color="C0", fontsize=8)
+    ax_w.set_ylabel("TAR weight", color="C3", fontsize=8)
+    anchor = f"gripper closes at t = {t[close]}" if close is not None else "no gripper closing: no contact anchor"
+    ax.set_title(f"{task}, episode {int(one['episode'].iloc[0])} ({anchor})", fontsize=9)
+
+
 def plot_weight_phases(
     weights_df: pd.DataFrame,
     path: str | os.PathLike,
@@ -204,37 +236,7 @@ def plot_weight_phases(
     axes = fig.subplots(len(tasks), 1, squeeze=False)[:, 0]
     for ax, task in zip(axes, tasks):
         tdf = df[df["task"] == task]
-        one = tdf[tdf["episode"] == tdf["episode"].min()].sort_values("t")
-        t = one["t"].to_numpy()
-        loss, weight = one["loss"].to_numpy(dtype=float), one["weight"].to_numpy(dtype=float)
-        labels = phase_labels(one["gripper"].to_numpy(), **phase_kw)
-        ax_w = ax.twinx()
-        for a, b in true_spans(weight > 1.0):
-            ax.axvspan(t[a] - 0.5, t[b] + 0.5, color="C1", alpha=0.2, linewidth=0)
-        top = max(float(loss.max()), 1e-12)
-        for phase in PHASES:
-            for a, b in true_spans(labels == phase):
-                ax.axvspan(
-                    t[a] - 0.5, t[b] + 0.5, ymin=0, ymax=0.05, color=_PHASE_COLOURS[phase], alpha=0.9, linewidth=0
-                )
-        ax.plot(t, loss, color="C0", linewidth=1.1)
-        ax_w.plot(t, weight, color="C3", linewidth=1.1)
-        ax_w.axhline(1.0, color="C3", linestyle=":", linewidth=0.8)
-        close = first_gripper_close(one["gripper"].to_numpy())
-        if close is not None:
-            ax.axvline(t[close], color="k", linestyle="--", linewidth=0.9)
-        ax.set_ylim(0, top * 1.1)
-        ax_w.set_ylim(bottom=0)
-        if gripper:
-            ax_g = ax.twinx()
-            ax_g.spines["right"].set_position(("axes", 1.12))
-            ax_g.plot(t, one["gripper"].to_numpy(dtype=float), color="0.5", linewidth=0.9, drawstyle="steps-mid")
-            ax_g.set_ylim(-1.3, 1.1)
-            ax_g.set_ylabel("gripper action", color="0.4", fontsize=8)
-        ax.set_ylabel("loss", color="C0", fontsize=8)
-        ax_w.set_ylabel("TAR weight", color="C3", fontsize=8)
-        anchor = f"gripper closes at t = {t[close]}" if close is not None else "no gripper closing: no contact anchor"
-        ax.set_title(f"{task}, episode {int(one['episode'].iloc[0])} ({anchor})", fontsize=9)
+        _draw_demonstration(ax, tdf[tdf["episode"] == tdf["episode"].min()].sort_values("t"), task, gripper, phase_kw)
     axes[-1].set_xlabel(f"time step t along the demonstration (weights at training step {step})")
     handles = [Patch(color="C1", alpha=0.2, label="weight > 1")]
     handles += [Patch(color=_PHASE_COLOURS[p], label=p.replace("_", " ")) for p in PHASES]
