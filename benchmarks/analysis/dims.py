@@ -59,25 +59,18 @@ def _read_checkpoint(path: Path) -> dict:
     return state
 
 
-class _Demos:
-    """The training demonstrations as :func:`recipes.record.demo_episodes` reads them (``data``, ``metadata``)."""
-
-    def __init__(self, data, metadata: dict):
-        self.data, self.metadata = data, metadata
-
-
-def _training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict, keys) -> _Demos:
-    """The run's training dataset under ``root``, read from its memory maps without writing anything.
+def _training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict):
+    """The run's training dataset under ``root``, opened by :func:`tar_rl.data.load_dataset` (every check of a
+    dataset; nothing written).
 
     The dataset is the folder whose metadata names the run's tasks, demonstrations per task, seed, chunk
     horizon and history; its observation statistics must equal the checkpoint's (the data the policy was
-    trained on). Read directly, whatever the dataset format version: R3's is of version 2, which
-    :func:`tar_rl.data.load_dataset` refuses; version 3 differs in metadata only, the storage is the same.
+    trained on). A dataset of a format the package no longer reads is refused with how to build it again (the
+    scripted demonstrations of a seed are the same, which the statistics check confirms).
     """
     import json
 
-    import torch
-    from tensordict import TensorDict
+    from tar_rl.data import DatasetError, load_dataset
 
     wanted = {
         "tasks": list(tasks),
@@ -90,27 +83,19 @@ def _training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict, keys) -
     for meta_path in sorted(root.glob("*/metadata.json")):
         metadata = json.loads(meta_path.read_text())
         if all(metadata.get(k) == v for k, v in wanted.items()):
-            found.append((meta_path.parent, metadata))
+            found.append(meta_path.parent)
     if len(found) != 1:
         raise SystemExit(
             f"dims: {len(found)} datasets under {root} have the settings {wanted} (one is needed); "
             "name the folder holding the runs' training data with --data"
         )
-    folder, metadata = found[0]
-    if list(metadata["stats"]["observation"]["mean"]) != list(info["obs_mean"]):
-        raise SystemExit(f"dims: {folder} holds other data than the checkpoint was trained on")
-    total = int(metadata["total_steps"])
-    columns = {}
-    for name in dict.fromkeys([*keys, "episode", "task_id"]):
-        spec = metadata["keys"][name]
-        memmap = np.memmap(
-            folder / "buffer" / "storage" / f"{name}.memmap",
-            dtype=spec["dtype"],
-            mode="r",
-            shape=(total, *spec["shape"]),
-        )
-        columns[name] = torch.from_numpy(np.array(memmap))
-    return _Demos(TensorDict(columns, [total]), metadata)
+    try:
+        demos = load_dataset(found[0])
+    except DatasetError as err:
+        raise SystemExit(f"dims: {err}") from None
+    if list(demos.metadata["stats"]["observation"]["mean"]) != list(info["obs_mean"]):
+        raise SystemExit(f"dims: {found[0]} holds other data than the checkpoint was trained on")
+    return demos
 
 
 def record_dims(run: Run, data_root: Path | None = None, demos: dict | None = None) -> pd.DataFrame:
@@ -150,7 +135,7 @@ def record_dims(run: Run, data_root: Path | None = None, demos: dict | None = No
     root = Path(data_root or cfg.data.root)
     demos = {} if demos is None else demos
     if root not in demos:
-        demos[root] = _training_demos(root, cfg, job.train_tasks, state["data_info"], policy.keys)
+        demos[root] = _training_demos(root, cfg, job.train_tasks, state["data_info"])
     episodes = demo_episodes(demos[root], job.train_tasks, cfg.logging.record_episodes, policy.keys, "cpu")
     rows = record_weights(objective, episodes, cfg.data.slice_len, cfg.optim.steps)
     df = pd.DataFrame(rows, columns=weights_columns(len(rows[0])))
