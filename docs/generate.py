@@ -361,13 +361,13 @@ def _untitled(path: str) -> str:
 
 
 def baselines_block() -> str:
-    """Table III extended with the baselines, as ``r3_baselines.py table`` writes it."""
+    """Table III extended with the baselines, as ``python -m benchmarks.studies baselines table`` writes it."""
     return _untitled(BASELINES_TABLE)
 
 
 def tuning_block() -> str:
     """TAR's tuning in R3 on the tuning seed and, once its final runs finished, the final comparison, as
-    ``r3_tuning.py table`` writes them."""
+    ``python -m benchmarks.studies tuning table`` writes them."""
     final = REPO / TUNING_FINAL
     return _untitled(TUNING_TABLE) + (f"\n\n{_untitled(TUNING_FINAL)}" if final.is_file() else "")
 

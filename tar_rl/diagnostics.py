@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from tar_rl.report import PHASES, phase_labels
+from tar_rl.report.phases import PHASES, phase_column
 
 __all__ = [
     "STEP_COLUMNS",
@@ -103,10 +103,7 @@ def rank_correlation(x: Sequence[float], y: Sequence[float]) -> float:
 def phase_means(steps: pd.DataFrame) -> dict[str, float | None]:
     """Mean ``value`` per phase (:data:`tar_rl.report.PHASES`, labelled per episode from its gripper action);
     ``None`` for a phase no step falls in."""
-    labels = np.empty(len(steps), dtype=object)
-    for _, idx in steps.groupby("episode", sort=False).indices.items():
-        order = idx[np.argsort(steps["t"].to_numpy()[idx])]
-        labels[order] = phase_labels(steps["gripper"].to_numpy()[order])
+    labels = phase_column(steps, ["episode"])
     values = steps["value"].to_numpy(dtype=np.float64)
     return {p: (float(values[labels == p].mean()) if np.any(labels == p) else None) for p in PHASES}
 

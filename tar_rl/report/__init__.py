@@ -11,11 +11,12 @@
 * :mod:`~tar_rl.report.plots`: :func:`plot_success_vs_neps` (the paper's Fig. 3),
   :func:`plot_group_bars` and :func:`plot_weights` (Fig. 5), and the figure helpers.
 * :mod:`~tar_rl.report.phases`: :data:`PHASES`, :func:`first_gripper_close` and :func:`phase_labels`,
-  a demonstration's phases from its gripper action.
+  a demonstration's phases from its gripper action; :func:`~tar_rl.report.phases.switch_steps` and
+  :func:`~tar_rl.report.phases.label_steps`, its gripper switches and the labels of many demonstrations.
 * :mod:`~tar_rl.report.cli`: :func:`main`, the body of ``tar-rl report RUN_DIR... [--out DIR]``.
 
 The paper experiments' own tables and figures (Tables I and III, Figs. 3(c), 4 and 5 with phases,
-critical windows) are in ``benchmarks/paper_analysis.py``, built on these.
+critical windows) are in ``benchmarks/analysis`` and ``benchmarks/studies``, built on these.
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
-"""Phases of a MetaWorld demonstration from its gripper action (action[3], > 0 = closing).
+"""Phases of a MetaWorld demonstration from its gripper action (action[3], > 0 = closing), and its gripper switches.
 
 The first step where the gripper turns closing (:func:`first_gripper_close`) anchors the phases
 (:data:`PHASES`, :func:`phase_labels`): approach, contact onset around the closing step, transport,
-completion. The fit diagnostics and the paper's critical-window analysis group per-step values by them.
+completion. A gripper switch is a step where the action turns closing or stops closing (:func:`switch_steps`).
+:func:`phase_column` and :func:`label_steps` label the steps of many demonstrations in one table; the fit
+diagnostics, the paper's critical-window analysis and the R3 diagnosis group per-step values by them.
 """
 
 from __future__ import annotations
@@ -11,8 +13,9 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+import pandas as pd
 
-__all__ = ["PHASES", "first_gripper_close", "phase_labels"]
+__all__ = ["PHASES", "first_gripper_close", "label_steps", "near", "phase_column", "phase_labels", "switch_steps"]
 
 
 #: Phases of a demonstration, in time order (see :func:`phase_labels`).
@@ -73,3 +76,50 @@ def phase_labels(gripper: Sequence[float], onset: float = 0.1, completion: float
     labels[b:] = "transport"
     labels[max(b, T - k) :] = "completion"
     return labels
+
+
+def switch_steps(gripper: Sequence[float]) -> np.ndarray:
+    """Gripper-switch steps of one demonstration: the gripper action changes sign from the previous step.
+
+    The sign is taken as closing (``> 0``) or not (``<= 0``, zero counting as open, as in
+    :func:`first_gripper_close`): a step is a switch step when it is closing and the previous step is not, or the
+    reverse. The first step is never a switch step.
+    """
+    closing = np.asarray(gripper, dtype=float) > 0
+    out = np.zeros(len(closing), dtype=bool)
+    out[1:] = closing[1:] != closing[:-1]
+    return out
+
+
+def near(flags: np.ndarray, window: int) -> np.ndarray:
+    """Steps within ``window`` steps (either side) of a flagged step, the flagged steps included."""
+    out = flags.copy()
+    for k in range(1, window + 1):
+        out[k:] |= flags[:-k]
+        out[:-k] |= flags[k:]
+    return out
+
+
+def phase_column(steps: pd.DataFrame, by: Sequence[str]) -> np.ndarray:
+    """The phase of every row of ``steps`` (a table of per-step rows with ``t`` and ``gripper``), each
+    demonstration (the rows of one value of ``by``) labelled in time order; aligned with the rows as given."""
+    labels = np.empty(len(steps), dtype=object)
+    t, gripper = steps["t"].to_numpy(), steps["gripper"].to_numpy()
+    for idx in steps.groupby(list(by), sort=False).indices.values():
+        order = idx[np.argsort(t[idx], kind="stable")]
+        labels[order] = phase_labels(gripper[order])
+    return labels
+
+
+def label_steps(steps: pd.DataFrame, by: Sequence[str], window: int) -> pd.DataFrame:
+    """``steps`` sorted by (``by``, ``t``) with each step's ``phase`` (:func:`phase_labels`), ``switch``
+    (:func:`switch_steps`) and ``near_switch`` (within ``window`` steps of a switch, :func:`near`), each
+    demonstration (the rows of one value of ``by``) on its own."""
+    df = steps.sort_values([*by, "t"], kind="stable").reset_index(drop=True)
+    switch = np.zeros(len(df), dtype=bool)
+    nearby = np.zeros(len(df), dtype=bool)
+    gripper = df["gripper"].to_numpy()
+    for idx in df.groupby(list(by), sort=False).indices.values():
+        switch[idx] = switch_steps(gripper[idx])
+        nearby[idx] = near(switch[idx], window)
+    return df.assign(phase=phase_column(df, by), switch=switch, near_switch=nearby)

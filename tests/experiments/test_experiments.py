@@ -1,4 +1,4 @@
-"""The paper-experiment commands (benchmarks/paper_experiments.py) and the report functions they use.
+"""The paper's experiments (``python -m benchmarks.studies paper``) and the report functions they use.
 
 * Statistics (paired t, Table I's paired differences) against hand-computed values: t quantiles from
   a printed table, p-values from the closed forms of Student's t with 1 and 2 degrees of freedom.
@@ -10,37 +10,31 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import math
-import sys
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from paths import REPO
 from run_helpers import ROLLOUTS, write_run
 
-from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
-from tar_rl.runs import config_differences
-
-sys.path.insert(0, str(REPO / "benchmarks"))  # paper_analysis.py
-from paper_analysis import (
-    controls_markdown,
-    critical_windows,
-    phase_weight_mass,
+from benchmarks.analysis.figures import (
     plot_critical_windows,
     plot_group_deltas,
     plot_heatmaps,
     plot_lines,
     plot_radar,
     plot_weight_phases,
-    table_one_markdown,
 )
+from benchmarks.analysis.phases import critical_windows, phase_weight_mass
+from benchmarks.studies import cli, paper
+from benchmarks.studies.core import Planner
+from benchmarks.studies.writers import controls_markdown, table_one_markdown
+from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
+from tar_rl.runs import config_differences
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-BENCH = REPO / "benchmarks" / "paper_experiments.py"
 
 # Two-sided 95% quantiles t_{0.975, df} from a printed table of Student's t.
 T_TABLE = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776}
@@ -56,12 +50,10 @@ def _p_df2(t: float) -> float:
     return 1 - abs(t) / math.sqrt(t * t + 2)
 
 
-def _load_bench():
-    spec = importlib.util.spec_from_file_location("paper_experiments", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve their string annotations through it
-    spec.loader.exec_module(module)
-    return module
+def main(argv: list[str]) -> int:
+    """``python -m benchmarks.studies paper ...``: a stage's name (or ``all``) runs it, other commands as they are."""
+    command, rest = argv[0], argv[1:]
+    return cli.main(["paper", *(["run", command] if command in paper.STUDY.stages else [command]), *rest])
 
 
 # -- paired_t ------------------------------------------------------------------------------------------
@@ -283,15 +275,16 @@ def test_radar_draws_with_infinite_neps(sweep, tmp_path):
 
 @pytest.fixture(scope="module")
 def bench():
-    return _load_bench()
+    return paper
 
 
 @pytest.fixture(scope="module")
 def ci_out(tmp_path_factory, bench):
-    """Every command at the ci scale once, in one folder (shared dataset and runs)."""
+    """Every stage at the ci scale once, in one folder (shared dataset and runs), then every report."""
     out = tmp_path_factory.mktemp("paper")
     argv = ["all", "--scale", "ci", "--out", str(out / "res"), "--data-root", str(out / "data")]
-    assert bench.main(argv) == 0
+    assert main(argv) == 0
+    assert main(["table", *argv[1:]]) == 0
     return out / "res", argv
 
 
@@ -315,7 +308,7 @@ def test_ci_scale_writes_every_table_and_figure(ci_out):
     for folder, files in expected.items():
         prov = json.loads((res / folder / "provenance.json").read_text())
         assert prov["scale"] == "ci" and prov["cores"] >= 1 and prov["torch"] and prov["hostname"]
-        assert prov["command"].startswith("python benchmarks/paper_experiments.py all --scale ci")
+        assert prov["command"].startswith("python -m benchmarks.studies paper table --scale ci")
         for name in files:
             path = res / folder / name
             assert path.is_file(), path
@@ -368,8 +361,8 @@ def test_ci_pairs_differ_only_in_objective_and_tuning_uses_its_own_eval_seed(ci_
 def test_ci_second_call_trains_nothing(ci_out, bench, capsys):
     res, argv = ci_out
     before = {p: p.stat().st_mtime_ns for p in (res / "runs").glob("*/summary.json")}
-    assert bench.main(["protocol", *argv[1:]]) == 0
-    assert bench.main(["budget", *argv[1:]]) == 0
+    assert main(["protocol", *argv[1:]]) == 0
+    assert main(["budget", *argv[1:]]) == 0
     out = capsys.readouterr().out
     assert "4 runs: 4 finished (skipped), 0 to run" in out
     assert {p: p.stat().st_mtime_ns for p in (res / "runs").glob("*/summary.json")} == before
@@ -378,38 +371,39 @@ def test_ci_second_call_trains_nothing(ci_out, bench, capsys):
 
 def test_dry_run_plans_without_training(bench, tmp_path, capsys):
     out = tmp_path / "res"
-    assert bench.main(["all", "--scale", "ci", "--out", str(out), "--data-root", str(tmp_path), "--dry-run"]) == 0
+    assert main(["all", "--scale", "ci", "--out", str(out), "--data-root", str(tmp_path), "--dry-run"]) == 0
     text = capsys.readouterr().out
     assert "4 runs: 0 finished (skipped), 4 to run" in text  # protocol: 2 objectives x 2 seeds
     assert "7 runs: 0 finished (skipped), 7 to run" in text  # controls: every weighting, 1 seed
-    assert "policy=mlp objective=tar seed=0 eval.seed=2000 objective.gamma=2.0" in text
+    assert "policy=mlp eval.seed=2000 seed=0 objective=tar objective.gamma=2.0" in text
     assert not (out / "runs").exists()
 
 
 def test_bad_arguments_are_refused_naming_the_choices(bench, tmp_path):
     common = ["--out", str(tmp_path / "o"), "--data-root", str(tmp_path), "--dry-run"]
     with pytest.raises(SystemExit, match=r"--scale='huge' is not valid; choose one of \['ci', 'cpu', 'paper'\]"):
-        bench.main(["table", "--scale", "huge", *common])
+        main(["table", "--scale", "huge", *common])
     with pytest.raises(SystemExit, match=r"not registered policy heads; registered: \[.*'mlp'"):
-        bench.main(["protocol", "--scale", "ci", "--families", "nosuchhead", *common])
+        main(["protocol", "--scale", "ci", "--families", "nosuchhead", *common])
     with pytest.raises(SystemExit, match="no finished protocol run"):
-        bench.main(["table", "--scale", "ci", "--out", str(tmp_path / "o"), "--data-root", str(tmp_path)])
+        main(["table", "--scale", "ci", "--out", str(tmp_path / "o"), "--data-root", str(tmp_path)])
     with pytest.raises(SystemExit, match=r"optim\.stepz"):
-        bench.main(["protocol", "--scale", "ci", "--set", "optim.stepz=3", *common])
+        main(["protocol", "--scale", "ci", "--set", "optim.stepz=3", *common])
 
 
 def test_scales_pair_objectives_and_paper_scale_is_the_papers_protocol(bench, tmp_path):
-    paper = bench.SCALES["paper"]
-    assert set(bench.PAPER_FAMILIES) == set(paper.families) and len(paper.families) == 5
-    cpu = bench.SCALES["cpu"]
-    assert len(cpu.seeds) >= 5 and cpu.families == ("mlp",)
-    assert cpu.sens_eval_seed != cpu.value("eval.seed") and cpu.value("eval.seed") == "1000"
-    specs = bench.Planner(dataclasses.replace(cpu, seeds=(0,)), tmp_path, str(tmp_path)).protocol()
+    sizes = bench.SIZES["paper"]
+    assert set(bench.PAPER_FAMILIES) == set(sizes.families) and len(sizes.families) == 5
+    cpu = bench.SIZES["cpu"]
+    assert len(cpu.scale.seeds) >= 5 and cpu.families == ("mlp",)
+    assert cpu.sens_eval_seed != cpu.scale.value("eval.seed") and cpu.scale.value("eval.seed") == "1000"
+    one_seed = dataclasses.replace(cpu, scale=dataclasses.replace(cpu.scale, seeds=(0,)))
+    specs = bench.stage_specs(one_seed, Planner(one_seed.scale, tmp_path, str(tmp_path)), "protocol")
     assert len(specs) == 2
     a, b = specs[0].config, specs[1].config
     assert config_differences(a, b) == ["objective.name: 'uniform' -> 'tar'"]
     assert a["eval"]["seed"] == 1000 and a["optim"]["steps"] == 8000 and len(a["data"]["tasks"]) == 8
-    c = bench.Planner(paper, tmp_path, str(tmp_path)).spec("policy=mlp", "objective=tar").config
+    c = Planner(sizes.scale, tmp_path, str(tmp_path)).spec("policy=mlp", "objective=tar").config
     assert c["optim"]["steps"] == 100_000 and c["eval"]["rollouts"] == 50 and c["eval"]["seed"] == 1000
     assert c["data"]["tasks"] == ["mt50"]
     assert c["objective"]["start"] == 0.2 and c["objective"]["ramp"] == 0.3

@@ -1,13 +1,11 @@
 """The regime study: fit diagnostics on hand-made numbers, Holm and the MDE against hand values, the
-commands of ``benchmarks/regimes.py`` at the ci scale, their refusals, and the committed tables."""
+commands of ``python -m benchmarks.studies regimes`` at the ci scale, their refusals, and the committed tables."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import shutil
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -16,19 +14,17 @@ import pandas as pd
 import pytest
 from paths import REPO
 
+from benchmarks.studies import cli, compare, records, regimes
 from tar_rl import diagnostics
 from tar_rl.report import holm, min_detectable_effect
 
-BENCH = REPO / "benchmarks" / "regimes.py"
-COMMITTED = BENCH.parent / "results" / "regimes"
+COMMITTED = REPO / "benchmarks" / "results" / "regimes"
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("regimes", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+def main(args: list[str]) -> int:
+    """``python -m benchmarks.studies regimes ...``: a stage's name runs it, other commands as they are."""
+    command, rest = args[0], args[1:]
+    return cli.main(["regimes", *(["run", command] if command in regimes.STUDY.stages else [command]), *rest])
 
 
 # -- Diagnostics -------------------------------------------------------------------------------------
@@ -134,14 +130,11 @@ def test_min_detectable_effect_against_t_tables():
 @pytest.fixture(scope="module")
 def study(tmp_path_factory, data_root):
     """Every command at the ci scale with one pair per comparison, in the plan's order."""
-    regimes = _load()
     out = tmp_path_factory.mktemp("regimes")
     for command in ("r1", "r2-screen", "r3", "r2", "table"):
-        code = regimes.main(
-            [command, "--scale", "ci", "--out", str(out), "--data-root", str(data_root), "--seeds", "0"]
-        )
+        code = main([command, "--scale", "ci", "--out", str(out), "--data-root", str(data_root), "--seeds", "0"])
         assert code == 0, command
-    return regimes, out, data_root
+    return out, data_root
 
 
 def _summaries(out: Path) -> dict[str, dict]:
@@ -150,7 +143,7 @@ def _summaries(out: Path) -> dict[str, dict]:
 
 @pytest.mark.slow
 def test_every_regime_runs_at_the_ci_scale_in_pairs(study):
-    _, out, _ = study
+    out, _ = study
     runs = _summaries(out)
     # source + screening + pairs: R1 at two budgets, R2, R3 (one seed each)
     assert len(runs) == 2 + 2 * 4
@@ -180,12 +173,12 @@ def test_every_regime_runs_at_the_ci_scale_in_pairs(study):
 
 @pytest.mark.slow
 def test_second_call_trains_nothing_and_collect_keeps_only_the_source_checkpoint(study, tmp_path, capsys):
-    regimes, out, data_root = study
+    out, data_root = study
     capsys.readouterr()
-    assert regimes.main(["r3", "--scale", "ci", "--out", str(out), "--data-root", str(data_root), "--seeds", "0"]) == 0
+    assert main(["r3", "--scale", "ci", "--out", str(out), "--data-root", str(data_root), "--seeds", "0"]) == 0
     assert "0 to run" in capsys.readouterr().out
     repo = tmp_path / "repo"
-    assert regimes.main(["collect", "--scale", "ci", "--out", str(repo), "--from", str(out / "runs")]) == 0
+    assert main(["collect", "--scale", "ci", "--out", str(repo), "--from", str(out / "runs")]) == 0
     copied = sorted((repo / "runs").iterdir())
     assert len(copied) == 10
     with_checkpoint = [p.name for p in copied if (p / "checkpoint.pt").exists()]
@@ -195,27 +188,25 @@ def test_second_call_trains_nothing_and_collect_keeps_only_the_source_checkpoint
         assert (p / "eval_rollouts.csv.gz").is_file() and not (p / "eval_rollouts.csv").exists()
     # the tables computed from the collected copy equal those of the original folder
     shutil.copy(out / "screening.json", repo / "screening.json")
-    assert (
-        regimes.main(["table", "--scale", "ci", "--out", str(repo), "--data-root", str(data_root), "--seeds", "0"]) == 0
-    )
+    assert main(["table", "--scale", "ci", "--out", str(repo), "--data-root", str(data_root), "--seeds", "0"]) == 0
     assert (repo / "decision.md").read_text() == (out / "decision.md").read_text()
     assert (repo / "decision.csv").read_text() == (out / "decision.csv").read_text()
 
 
 @pytest.mark.slow
 def test_a_changed_screening_list_is_refused_once_comparisons_started(study, tmp_path):
-    regimes, out, data_root = study
+    out, data_root = study
     copy = tmp_path / "copy"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns("checkpoint.pt"))
     screening = json.loads((copy / "screening.json").read_text())
     screening["tasks"] = list(reversed(screening["tasks"]))
     (copy / "screening.json").write_text(json.dumps(screening))
     with pytest.raises(SystemExit, match="may not change after comparison runs started"):
-        regimes.main(["r2", "--scale", "ci", "--out", str(copy), "--data-root", str(data_root), "--seeds", "0"])
+        main(["r2", "--scale", "ci", "--out", str(copy), "--data-root", str(data_root), "--seeds", "0"])
     started = json.loads((copy / "r2_started.json").read_text())
     (copy / "r2_started.json").write_text(json.dumps({**started, "tasks": ["reach-v3", "push-v3"]}))
     with pytest.raises(SystemExit, match="The list is fixed once comparison runs start"):
-        regimes.write_screening(regimes.STUDIES["ci"], SimpleNamespace(run_dir=_screen_dir(out)), copy)
+        regimes.write_screening(regimes.SIZES["ci"], SimpleNamespace(run_dir=_screen_dir(out)), copy)
 
 
 # -- The chunked-heads regimes (R4, R5) ------------------------------------------------------------
@@ -224,17 +215,16 @@ def test_a_changed_screening_list_is_refused_once_comparisons_started(study, tmp
 @pytest.fixture(scope="module")
 def chunked(tmp_path_factory, data_root):
     """R4 and R5 at the ci scale, seed 0 (three arms each), and their table."""
-    regimes = _load()
     out = tmp_path_factory.mktemp("chunked")
     for command in ("r4", "r5", "table"):
         args = [command, "--scale", "ci", "--out", str(out), "--data-root", str(data_root), "--seeds", "0"]
-        assert regimes.main(args) == 0, command
-    return regimes, out, data_root
+        assert main(args) == 0, command
+    return out, data_root
 
 
 @pytest.mark.slow
 def test_chunked_regimes_run_at_the_ci_scale_three_arms_a_seed(chunked):
-    _, out, _ = chunked
+    out, _ = chunked
     runs = _summaries(out)
     assert len(runs) == 2 * 3
     for head in ("act", "flow"):
@@ -255,7 +245,7 @@ def test_chunked_regimes_run_at_the_ci_scale_three_arms_a_seed(chunked):
 
 @pytest.mark.slow
 def test_a_changed_chunked_plan_is_refused_by_the_run_and_table_commands(chunked, tmp_path):
-    regimes, out, data_root = chunked
+    out, data_root = chunked
     copy = tmp_path / "copy"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns("checkpoint.pt"))
     started = json.loads((copy / "chunked_started.json").read_text())
@@ -263,13 +253,13 @@ def test_a_changed_chunked_plan_is_refused_by_the_run_and_table_commands(chunked
     common = ["--scale", "ci", "--out", str(copy), "--data-root", str(data_root), "--seeds", "0"]
     for command in ("r4", "table"):
         with pytest.raises(SystemExit, match="R4's plan changed after its runs started"):
-            regimes.main([command, *common])
-    regimes.main(["r5", *common, "--dry-run"])  # R5's plan is unchanged
+            main([command, *common])
+    main(["r5", *common, "--dry-run"])  # R5's plan is unchanged
 
 
 @pytest.mark.slow
 def test_an_arm_missing_a_seed_is_left_out_and_refused_by_the_complete_table(chunked, tmp_path):
-    regimes, out, data_root = chunked
+    out, data_root = chunked
     copy = tmp_path / "copy"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns("checkpoint.pt"))
     gentle = next(
@@ -278,8 +268,8 @@ def test_an_arm_missing_a_seed_is_left_out_and_refused_by_the_complete_table(chu
     shutil.rmtree(copy / "runs" / gentle)
     common = ["--scale", "ci", "--out", str(copy), "--data-root", str(data_root), "--seeds", "0"]
     with pytest.raises(SystemExit, match=f"R5 misses 1 run\\(s\\) of its plan: {gentle}"):
-        regimes.main(["table", *common, "--complete"])
-    assert regimes.main(["table", *common]) == 0
+        main(["table", *common, "--complete"])
+    assert main(["table", *common]) == 0
     md = (copy / "decision.md").read_text()
     assert "| R4 tar_gentle |" in md and "| R5 tar" not in md  # R5 has no seed with all three arms
     assert f"- R5: 1 run(s) ({gentle})" in md
@@ -288,7 +278,6 @@ def test_an_arm_missing_a_seed_is_left_out_and_refused_by_the_complete_table(chu
 def test_collect_keeps_the_weights_of_the_runs_an_analysis_reads_only(tmp_path):
     from tar_rl.recipes import run_name
 
-    regimes = _load()
     src = tmp_path / "src"
     read = []
     for seed in (0, 1):
@@ -301,12 +290,12 @@ def test_collect_keeps_the_weights_of_the_runs_an_analysis_reads_only(tmp_path):
         for name in ("eval_rollouts.csv", "metrics.csv", "weights.csv"):
             (run / name).write_text("a\n1\n")
         read += [run_name(config)] if seed == 0 else []
-    names = regimes.collect(src, tmp_path / "out", keep_weights=read)
+    names = records.collect(src, tmp_path / "out", keep_weights=read)
     by_seed = {json.loads((tmp_path / "out" / "runs" / n / "summary.json").read_text())["seed"]: n for n in names}
     kept = {seed: sorted(p.name for p in (tmp_path / "out" / "runs" / n).iterdir()) for seed, n in by_seed.items()}
     assert "weights.csv.gz" in kept[0] and "weights.csv.gz" not in kept[1]
     assert "metrics.csv.gz" in kept[1] and "eval_rollouts.csv.gz" in kept[1]
-    regimes.collect(src, tmp_path / "none")  # no run named: no weights, whatever the seed
+    records.collect(src, tmp_path / "none")  # no run named: no weights, whatever the seed
     assert not list((tmp_path / "none").glob("runs/*/weights.csv.gz"))
     for name in names:  # the copies name the default job's relative folders, not this machine's
         folder = tmp_path / "out" / "runs" / name
@@ -315,10 +304,11 @@ def test_collect_keeps_the_weights_of_the_runs_an_analysis_reads_only(tmp_path):
 
 
 def test_the_weights_kept_are_r3s_and_seed_0_of_each_chunked_arm(tmp_path):
-    regimes = _load()
-    study = regimes.STUDIES["ci"]
-    names = regimes.weights_read(study, regimes.Planner(study.scale, tmp_path, str(tmp_path)))
-    r3 = [f"{objective}-mlp-s{seed}" for objective in ("uniform", "tar") for seed in study.scale.seeds]
+    from benchmarks.studies.core import Planner
+
+    sizes = regimes.SIZES["ci"]
+    names = regimes.weights_read(sizes, Planner(sizes.scale, tmp_path, str(tmp_path)))
+    r3 = [f"{objective}-mlp-s{seed}" for objective in ("uniform", "tar") for seed in sizes.scale.seeds]
     chunked = [f"{arm}-{head}-s0" for head in ("act", "flow") for arm in ("uniform", "tar", "tar")]  # tar_gentle: tar
     assert sorted(n.rsplit("-", 1)[0] for n in names) == sorted(r3 + chunked)
     assert len(set(names)) == len(names)  # tar_gentle's runs differ from tar's by their settings
@@ -336,16 +326,14 @@ def _run(name, seed, commit, host):
 
 
 def test_pairs_from_mixed_commits_or_machines_are_refused_naming_the_runs():
-    regimes = _load()
-    regimes.check_pairs([_run("u0", 0, "a", "m"), _run("t0", 0, "a", "m"), _run("u1", 1, "b", "n")])
+    compare.check_pairs([_run("u0", 0, "a", "m"), _run("t0", 0, "a", "m"), _run("u1", 1, "b", "n")])
     with pytest.raises(SystemExit, match=r"seed 0 \(u0, t0\) was trained at different commits"):
-        regimes.check_pairs([_run("u0", 0, "a", "m"), _run("t0", 0, "b", "m")])
+        compare.check_pairs([_run("u0", 0, "a", "m"), _run("t0", 0, "b", "m")])
     with pytest.raises(SystemExit, match=r"seed 3 \(u3, t3\) was trained at different machines"):
-        regimes.check_pairs([_run("u3", 3, "a", "m"), _run("t3", 3, "a", "other")])
+        compare.check_pairs([_run("u3", 3, "a", "m"), _run("t3", 3, "a", "other")])
 
 
 def test_hardest_tasks_are_the_lowest_success_ties_by_name():
-    regimes = _load()
     rows = pd.DataFrame(
         {"task": ["c", "c", "a", "a", "b", "b", "d", "d"], "success": [1, 1, 0, 1, 0, 1, 0, 0]}
     )  # rates: c 1.0, a 0.5, b 0.5, d 0.0
@@ -366,8 +354,7 @@ def test_every_committed_run_folder_is_named_by_its_identity():
 
 def test_committed_tables_equal_what_the_table_command_computes(tmp_path):
     """The tables under benchmarks/results/regimes are recomputed from its committed runs."""
-    regimes = _load()
-    assert regimes.main(["table", "--tables", str(tmp_path)]) == 0
+    assert main(["table", "--tables", str(tmp_path)]) == 0
     for name in ("decision.md", "decision.csv", "groups.csv"):
         if (COMMITTED / name).is_file():
             assert (tmp_path / name).read_text() == (COMMITTED / name).read_text(), name

@@ -103,11 +103,13 @@ def test_no_committed_file_is_left_to_rewrite(tool, capsys):
 
 
 def test_provenance_records_the_commands_paths_relative_to_the_repository():
-    bench = _load("paper_experiments")
-    argv = ["budget", "--out", str(REPO / "benchmarks" / "results" / "paper-cpu"), "--data-root", "/elsewhere/datasets"]
+    from benchmarks.studies import paper, records
+
+    argv = ["run", "budget", "--out", str(REPO / "benchmarks" / "results" / "paper-cpu")]
+    argv += ["--data-root", "/elsewhere/datasets"]
     argv += ["--set", f"data.path={REPO}/demos", "--set", "optim.steps=3", "--jobs", "/elsewhere/unplaced"]
-    command = bench.provenance(bench.SCALES["ci"], argv)["command"]
+    command = records.provenance(paper.SIZES["ci"].scale, "paper", argv)["command"]
     assert command == (
-        "python benchmarks/paper_experiments.py budget --out benchmarks/results/paper-cpu --data-root datasets "
+        "python -m benchmarks.studies paper run budget --out benchmarks/results/paper-cpu --data-root datasets "
         "--set data.path=demos --set optim.steps=3 --jobs /elsewhere/unplaced"
     )

@@ -359,3 +359,34 @@ def test_main_fails_when_no_run_is_finished(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith(f"tar-rl report: no finished run among the 2 run(s) of {tmp_path / 'runs'}")
     assert "nothing to compare" in err[-1]
+
+
+def test_phase_column_labels_each_demonstration_in_time_order_aligned_with_the_rows():
+    from tar_rl.report.phases import phase_column
+
+    # Two demonstrations of T = 10, rows shuffled. Episode 0 closes at t 4 (c = 4, w = ceil(1.0) = 1, k = 2):
+    # approach t 0-2, contact onset t 3-4, transport t 5-7, completion t 8-9. Episode 1 never closes: approach t 0-7,
+    # completion t 8-9.
+    rows = [(0, t, 1.0 if t >= 4 else -1.0) for t in range(10)] + [(1, t, -1.0) for t in range(10)]
+    order = [13, 4, 0, 19, 7, 2, 9, 11, 5, 17, 1, 8, 3, 15, 6, 10, 12, 14, 16, 18]
+    steps = pd.DataFrame([rows[i] for i in order], columns=["episode", "t", "gripper"])
+    got = dict(zip(zip(steps["episode"], steps["t"]), phase_column(steps, ["episode"])))
+    expected0 = ["approach"] * 3 + ["contact_onset"] * 2 + ["transport"] * 3 + ["completion"] * 2
+    assert [got[(0, t)] for t in range(10)] == expected0
+    assert [got[(1, t)] for t in range(10)] == ["approach"] * 8 + ["completion"] * 2
+
+
+def test_label_steps_sorts_and_flags_switches_and_their_neighbours_per_demonstration():
+    from tar_rl.report.phases import label_steps
+
+    # Episode 0: gripper -1 -1 1 1 -1 (switches at t 2 and 4); episode 1: 1 1 1 1 1 (none: closed from the start).
+    gripper = {0: [-1, -1, 1, 1, -1], 1: [1, 1, 1, 1, 1]}
+    steps = pd.DataFrame(
+        [(e, t, g) for e in (1, 0) for t, g in reversed(list(enumerate(gripper[e])))],
+        columns=["episode", "t", "gripper"],
+    )
+    df = label_steps(steps, ["episode"], window=1)
+    assert df[["episode", "t"]].values.tolist() == [[e, t] for e in (0, 1) for t in range(5)]
+    assert df["switch"].tolist() == [False, False, True, False, True] + [False] * 5
+    assert df["near_switch"].tolist() == [False, True, True, True, True] + [False] * 5
+    assert set(df.columns) >= {"phase", "switch", "near_switch"}

@@ -1,14 +1,7 @@
-"""The paper experiments' tables and figures (``paper_experiments.py`` beside this file), from loaded runs.
-
-Built on :mod:`tar_rl.report` (runs, :func:`~tar_rl.report.compare`, :func:`~tar_rl.report.paired_table`,
-the figure helpers):
-
-* :func:`table_one_markdown` (Table I) and :func:`controls_markdown` (Table III);
-* :func:`plot_group_deltas` (Fig. 3(c)) and :func:`plot_radar` (Fig. 4);
-* :func:`phase_weight_mass` and :func:`critical_windows` (where TAR's weight mass lies along a
-  demonstration, anchored at the gripper-closing step, :func:`tar_rl.report.phase_labels`),
-  :func:`plot_weight_phases` (Fig. 5 with phases) and :func:`plot_critical_windows`;
-* :func:`plot_lines` (the budget curve) and :func:`plot_heatmaps` (the sensitivity grid).
+"""The studies' figures, from their tables: Fig. 3(c) (:func:`plot_group_deltas`), Fig. 4 (:func:`plot_radar`),
+the critical windows and Fig. 5 with phases (:func:`plot_critical_windows`, :func:`plot_weight_phases`), the budget
+curve (:func:`plot_lines`) and the sensitivity grid (:func:`plot_heatmaps`). Built on the figure helpers of
+:mod:`tar_rl.report`.
 """
 
 from __future__ import annotations
@@ -17,7 +10,6 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -33,126 +25,15 @@ from tar_rl.report.plots import (
     zero_nan,
 )
 from tar_rl.report.stats import BASELINE, objective_key, table_levels
-from tar_rl.report.tables import fmt_pm
 
 __all__ = [
-    "TABLE_I_COLUMNS",
-    "controls_markdown",
-    "critical_windows",
-    "phase_weight_mass",
     "plot_critical_windows",
     "plot_group_deltas",
     "plot_heatmaps",
     "plot_lines",
     "plot_radar",
     "plot_weight_phases",
-    "table_one_markdown",
 ]
-
-
-#: Table I's columns: ``(metric, level)`` and their headers.
-TABLE_I_COLUMNS: tuple[tuple[str, str, str], ...] = (
-    ("success", "easy", "Easy"),
-    ("success", "medium", "Medium"),
-    ("success", "hard", "Hard"),
-    ("success", "very_hard", "Very Hard"),
-    ("success", "overall", "Overall"),
-    ("fast20", "overall", "100 x Fast20 ↓"),
-    ("neps", "overall", "100 x NEPS ↓"),
-)
-
-
-def fmt_p(p: float) -> str:
-    if p is None or math.isnan(p):
-        return "-"
-    return "<0.001" if p < 0.001 else f"{p:.3f}"
-
-
-def _cell(paired: pd.DataFrame, policy: str, objective: str, metric: str, level: str) -> dict | None:
-    match = paired[
-        (paired["policy"] == policy)
-        & (paired["objective"] == objective)
-        & (paired["metric"] == metric)
-        & (paired["level"] == level)
-    ]
-    return None if match.empty else match.iloc[0].to_dict()
-
-
-def table_one_markdown(paired: pd.DataFrame, objective: str = "tar") -> str:
-    """The paper's Table I from a :func:`~tar_rl.report.paired_table`: per policy, baseline, objective, difference.
-
-    Three rows per policy: the baseline and the objective (mean ± std over the paired seeds), then
-    ``Δ`` (objective - baseline; mean and 95% CI over seeds) and a row of paired t-test p-values.
-    Columns: success per difficulty group and overall (%), 100 x Fast20 and 100 x NEPS (lower is
-    better). ``-``: no finite pair (e.g. NEPS with no success).
-
-    Args:
-        paired: a :func:`~tar_rl.report.paired_table`.
-        objective: the treatment shown (default ``tar``).
-
-    Returns:
-        A markdown table (no trailing newline).
-    """
-    header = "| policy | row | pairs | " + " | ".join(h for _, _, h in TABLE_I_COLUMNS) + " |"
-    lines = [header, "|" + "---|" * (3 + len(TABLE_I_COLUMNS))]
-    for policy in sorted(paired["policy"].unique()):
-        cells = [_cell(paired, policy, objective, m, lv) for m, lv, _ in TABLE_I_COLUMNS]
-        if all(c is None for c in cells):
-            continue
-        n = max((c["n_pairs"] for c in cells if c is not None), default=0)
-        base = next((c["baseline"] for c in cells if c is not None), BASELINE)
-
-        def fmt(c, kind):
-            if c is None or c["n_pairs"] == 0:
-                return "-"
-            if kind == "base":
-                return fmt_pm(c["baseline_mean"], c["baseline_std"])
-            if kind == "obj":
-                return fmt_pm(c["objective_mean"], c["objective_std"])
-            if kind == "delta":
-                ci = "" if math.isnan(c["ci_low"]) else f" [{c['ci_low']:+.2f}, {c['ci_high']:+.2f}]"
-                return f"{c['delta_mean']:+.2f}{ci}"
-            return fmt_p(c["p_value"])
-
-        for label, kind in (
-            (base, "base"),
-            (objective, "obj"),
-            (f"Δ {objective} - {base} [95% CI]", "delta"),
-            ("p (paired t)", "p"),
-        ):
-            lines.append(f"| {policy} | {label} | {n} | " + " | ".join(fmt(c, kind) for c in cells) + " |")
-    return "\n".join(lines)
-
-
-def controls_markdown(paired: pd.DataFrame, table: pd.DataFrame, policy: str) -> str:
-    """The paper's Table III for one policy: success per group and overall for every objective.
-
-    Args:
-        paired: a :func:`~tar_rl.report.paired_table` (differences to ``uniform``).
-        table: a :func:`~tar_rl.report.compare` table of the same runs (means ± std over each objective's seeds).
-        policy: the policy family shown.
-
-    Returns:
-        A markdown table: one row per objective (``uniform`` first), success % per difficulty group
-        and overall (mean ± std over seeds), the seeds, and the paired difference of the overall
-        success to ``uniform`` with its 95% CI and p-value.
-    """
-    levels = [lv for lv in table_levels(table) if lv != "overall"] + ["overall"]
-    header = "| objective | seeds | " + " | ".join(lv.replace("_", " ") for lv in levels)
-    lines = [header + " | Δ overall vs uniform [95% CI] | p |", "|" + "---|" * (4 + len(levels))]
-    rows = table[table["policy"] == policy]
-    for rec in rows.to_dict("records"):
-        cells = [
-            fmt_pm(rec.get(f"success_{lv}_mean", math.nan), rec.get(f"success_{lv}_std", math.nan)) for lv in levels
-        ]
-        c = _cell(paired, policy, rec["objective"], "success", "overall")
-        if c is None or c["n_pairs"] == 0:
-            delta, p = "-", "-"
-        else:
-            ci = "" if math.isnan(c["ci_low"]) else f" [{c['ci_low']:+.2f}, {c['ci_high']:+.2f}]"
-            delta, p = f"{c['delta_mean']:+.2f}{ci} (n={c['n_pairs']})", fmt_p(c["p_value"])
-        lines.append(f"| {rec['objective']} | {rec['n_seeds']} | " + " | ".join(cells) + f" | {delta} | {p} |")
-    return "\n".join(lines)
 
 
 def plot_radar(
@@ -234,89 +115,6 @@ def plot_radar(
     return save_png(fig, path, caption or provenance(rows))
 
 
-def phase_weight_mass(weights_df: pd.DataFrame, step: int | None = None, **phase_kw) -> pd.DataFrame:
-    """Share of steps and of TAR weight mass in each phase, per recorded demonstration.
-
-    Args:
-        weights_df: ``weights.csv`` rows (:data:`tar_rl.runs.WEIGHTS_COLUMNS`), optionally with a ``run`` column
-            (several runs' recordings concatenated).
-        step: the training step of the recording (default: the largest, per run).
-        **phase_kw: ``onset`` and ``completion`` of :func:`phase_labels`.
-
-    Returns:
-        One row per (run, task, episode, phase): ``steps``, ``step_share`` (steps / T), ``weight_share``
-        (sum of the phase's weights / sum of the demonstration's weights) and ``anchor`` (the
-        gripper-closing step, ``-1`` without one).
-
-    Raises:
-        ValueError: missing columns, no rows, or a recording with no positive weight.
-    """
-    check_weights_table(weights_df)
-    if len(weights_df) == 0:
-        raise ValueError("weights table has no rows")
-    df = weights_df if "run" in weights_df.columns else weights_df.assign(run="")
-    rows = []
-    for run, rdf in df.groupby("run", sort=True):
-        at = int(rdf["step"].max()) if step is None else step
-        rdf = rdf[rdf["step"] == at]
-        for (task, episode), one in rdf.groupby(["task", "episode"], sort=True):
-            one = one.sort_values("t")
-            labels = phase_labels(one["gripper"].to_numpy(), **phase_kw)
-            weight = one["weight"].to_numpy(dtype=float)
-            total = weight.sum()
-            if not total > 0:
-                raise ValueError(f"run {run!r}, task {task!r}, episode {episode}: no positive weight recorded")
-            anchor = first_gripper_close(one["gripper"].to_numpy())
-            for phase in PHASES:
-                sel = labels == phase
-                rows.append(
-                    {
-                        "run": run,
-                        "task": task,
-                        "episode": int(episode),
-                        "phase": phase,
-                        "steps": int(sel.sum()),
-                        "step_share": float(sel.mean()),
-                        "weight_share": float(weight[sel].sum() / total),
-                        "anchor": -1 if anchor is None else anchor,
-                    }
-                )
-    return pd.DataFrame(rows)
-
-
-def critical_windows(mass: pd.DataFrame) -> pd.DataFrame:
-    """Per task: mean over recorded demonstrations of each phase's weight and step share.
-
-    Args:
-        mass: a :func:`phase_weight_mass` table.
-
-    Returns:
-        One row per task: ``demos`` (recordings averaged), ``with_anchor`` (how many had a
-        gripper-closing step); for each phase ``P``: ``P_weight`` and ``P_steps`` (mean shares) and
-        ``P_ratio`` = ``P_weight / P_steps`` (> 1: the phase gets more than a uniform share of the
-        weight; ``nan`` for an empty phase); ``peak``, the phase with the largest ratio.
-    """
-    rows = []
-    for task, tdf in mass.groupby("task", sort=True):
-        demos = tdf.groupby(["run", "episode"])
-        row: dict[str, Any] = {
-            "task": task,
-            "demos": demos.ngroups,
-            "with_anchor": int((demos["anchor"].first() >= 0).sum()),
-        }
-        best, best_ratio = None, -math.inf
-        for phase in PHASES:
-            p = tdf[tdf["phase"] == phase]
-            wshare, sshare = float(p["weight_share"].mean()), float(p["step_share"].mean())
-            ratio = wshare / sshare if sshare > 0 else math.nan
-            row[f"{phase}_weight"], row[f"{phase}_steps"], row[f"{phase}_ratio"] = wshare, sshare, ratio
-            if math.isfinite(ratio) and ratio > best_ratio:
-                best, best_ratio = phase, ratio
-        row["peak"] = best or "-"
-        rows.append(row)
-    return pd.DataFrame(rows)
-
-
 _PHASE_COLOURS = {"approach": "C0", "contact_onset": "C3", "transport": "C2", "completion": "C4"}
 
 
@@ -356,6 +154,38 @@ def plot_critical_windows(windows: pd.DataFrame, path: str | os.PathLike, captio
     handles = [Patch(color=_PHASE_COLOURS[p], alpha=0.75, label=p.replace("_", " ")) for p in PHASES]
     fig.legend(handles=handles, loc="upper center", ncol=4, fontsize=8, frameon=False)
     return save_png(fig, path, caption or "critical windows")
+
+
+def _draw_demonstration(ax, one: pd.DataFrame, task: str, gripper: bool, phase_kw: dict) -> None:
+    """One panel of :func:`plot_weight_phases`: a demonstration's loss, weight, phases and gripper-closing step."""
+    t = one["t"].to_numpy()
+    loss, weight = one["loss"].to_numpy(dtype=float), one["weight"].to_numpy(dtype=float)
+    labels = phase_labels(one["gripper"].to_numpy(), **phase_kw)
+    ax_w = ax.twinx()
+    for a, b in true_spans(weight > 1.0):
+        ax.axvspan(t[a] - 0.5, t[b] + 0.5, color="C1", alpha=0.2, linewidth=0)
+    top = max(float(loss.max()), 1e-12)
+    for phase in PHASES:
+        for a, b in true_spans(labels == phase):
+            ax.axvspan(t[a] - 0.5, t[b] + 0.5, ymin=0, ymax=0.05, color=_PHASE_COLOURS[phase], alpha=0.9, linewidth=0)
+    ax.plot(t, loss, color="C0", linewidth=1.1)
+    ax_w.plot(t, weight, color="C3", linewidth=1.1)
+    ax_w.axhline(1.0, color="C3", linestyle=":", linewidth=0.8)
+    close = first_gripper_close(one["gripper"].to_numpy())
+    if close is not None:
+        ax.axvline(t[close], color="k", linestyle="--", linewidth=0.9)
+    ax.set_ylim(0, top * 1.1)
+    ax_w.set_ylim(bottom=0)
+    if gripper:
+        ax_g = ax.twinx()
+        ax_g.spines["right"].set_position(("axes", 1.12))
+        ax_g.plot(t, one["gripper"].to_numpy(dtype=float), color="0.5", linewidth=0.9, drawstyle="steps-mid")
+        ax_g.set_ylim(-1.3, 1.1)
+        ax_g.set_ylabel("gripper action", color="0.4", fontsize=8)
+    ax.set_ylabel("loss", color="C0", fontsize=8)
+    ax_w.set_ylabel("TAR weight", color="C3", fontsize=8)
+    anchor = f"gripper closes at t = {t[close]}" if close is not None else "no gripper closing: no contact anchor"
+    ax.set_title(f"{task}, episode {int(one['episode'].iloc[0])} ({anchor})", fontsize=9)
 
 
 def plot_weight_phases(
@@ -406,37 +236,7 @@ def plot_weight_phases(
     axes = fig.subplots(len(tasks), 1, squeeze=False)[:, 0]
     for ax, task in zip(axes, tasks):
         tdf = df[df["task"] == task]
-        one = tdf[tdf["episode"] == tdf["episode"].min()].sort_values("t")
-        t = one["t"].to_numpy()
-        loss, weight = one["loss"].to_numpy(dtype=float), one["weight"].to_numpy(dtype=float)
-        labels = phase_labels(one["gripper"].to_numpy(), **phase_kw)
-        ax_w = ax.twinx()
-        for a, b in true_spans(weight > 1.0):
-            ax.axvspan(t[a] - 0.5, t[b] + 0.5, color="C1", alpha=0.2, linewidth=0)
-        top = max(float(loss.max()), 1e-12)
-        for phase in PHASES:
-            for a, b in true_spans(labels == phase):
-                ax.axvspan(
-                    t[a] - 0.5, t[b] + 0.5, ymin=0, ymax=0.05, color=_PHASE_COLOURS[phase], alpha=0.9, linewidth=0
-                )
-        ax.plot(t, loss, color="C0", linewidth=1.1)
-        ax_w.plot(t, weight, color="C3", linewidth=1.1)
-        ax_w.axhline(1.0, color="C3", linestyle=":", linewidth=0.8)
-        close = first_gripper_close(one["gripper"].to_numpy())
-        if close is not None:
-            ax.axvline(t[close], color="k", linestyle="--", linewidth=0.9)
-        ax.set_ylim(0, top * 1.1)
-        ax_w.set_ylim(bottom=0)
-        if gripper:
-            ax_g = ax.twinx()
-            ax_g.spines["right"].set_position(("axes", 1.12))
-            ax_g.plot(t, one["gripper"].to_numpy(dtype=float), color="0.5", linewidth=0.9, drawstyle="steps-mid")
-            ax_g.set_ylim(-1.3, 1.1)
-            ax_g.set_ylabel("gripper action", color="0.4", fontsize=8)
-        ax.set_ylabel("loss", color="C0", fontsize=8)
-        ax_w.set_ylabel("TAR weight", color="C3", fontsize=8)
-        anchor = f"gripper closes at t = {t[close]}" if close is not None else "no gripper closing: no contact anchor"
-        ax.set_title(f"{task}, episode {int(one['episode'].iloc[0])} ({anchor})", fontsize=9)
+        _draw_demonstration(ax, tdf[tdf["episode"] == tdf["episode"].min()].sort_values("t"), task, gripper, phase_kw)
     axes[-1].set_xlabel(f"time step t along the demonstration (weights at training step {step})")
     handles = [Patch(color="C1", alpha=0.2, label="weight > 1")]
     handles += [Patch(color=_PHASE_COLOURS[p], label=p.replace("_", " ")) for p in PHASES]

@@ -1,31 +1,30 @@
-"""The baselines from the literature in R3 (``benchmarks/r3_baselines.py``): the plan, the reproduction check
-and the commands at the ci scale."""
+"""The baselines from the literature in R3 (``python -m benchmarks.studies baselines``): the plan, the
+reproduction check and the commands at the ci scale."""
 
 from __future__ import annotations
 
 import gzip
-import importlib.util
 import shutil
-import sys
 
 import pandas as pd
 import pytest
 from paths import REPO
 
+from benchmarks.studies import baselines as baselines_study
+from benchmarks.studies import cli, records
+
 BENCH = REPO / "benchmarks"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
 def baselines():
-    return _load("r3_baselines")
+    return baselines_study
+
+
+def main(args: list[str]) -> int:
+    """``python -m benchmarks.studies baselines ...``: ``run`` runs the stage, other commands as they are."""
+    command, rest = args[0], args[1:]
+    return cli.main(["baselines", *(["run", "baselines"] if command == "run" else [command]), *rest])
 
 
 def _rollouts(path, rows):
@@ -39,15 +38,15 @@ def test_reproduction_compares_the_final_evaluation_rollout_by_rollout(baselines
     final = [("reach", 1000, 1, False, 500, 10), ("reach", 1000, 0, True, 40, 10)]
     _rollouts(tmp_path / "a", first + final)
     _rollouts(tmp_path / "b", list(reversed(final)))  # another order, no intermediate evaluation
-    assert baselines.reproduces(tmp_path / "a", tmp_path / "b") == (True, "0 of 2 rollouts differ")
+    assert records.reproduces(tmp_path / "a", tmp_path / "b") == (True, "0 of 2 rollouts differ")
     _rollouts(tmp_path / "c", [("reach", 1000, 0, True, 41, 10), ("reach", 1000, 1, False, 500, 10)])
-    assert baselines.reproduces(tmp_path / "a", tmp_path / "c") == (False, "1 of 2 rollouts differ")
+    assert records.reproduces(tmp_path / "a", tmp_path / "c") == (False, "1 of 2 rollouts differ")
     # a committed run's rollouts are gzip-compressed
     (tmp_path / "d").mkdir()
     with gzip.open(tmp_path / "d" / "eval_rollouts.csv.gz", "wb") as f:
         f.write((tmp_path / "b" / "eval_rollouts.csv").read_bytes())
-    assert baselines.reproduces(tmp_path / "a", tmp_path / "d")[0]
-    missing = baselines.reproduces(tmp_path / "a", tmp_path / "missing")
+    assert records.reproduces(tmp_path / "a", tmp_path / "d")[0]
+    missing = records.reproduces(tmp_path / "a", tmp_path / "missing")
     assert missing == (False, "one of the two runs has no evaluation")
 
 
@@ -55,7 +54,7 @@ def test_the_plan_is_every_baseline_at_r3s_settings(baselines, capsys, tmp_path)
     assert baselines.WEIGHTINGS == ("tilted", "truncate", "keyframe", "focal", "dro_time")
     # an empty results folder: the plan lists every run (the committed folder's finished ones are not listed)
     out = ["--out", str(tmp_path), "--data-root", "datasets"]
-    assert baselines.main(["run", "--dry-run", *out, "--seeds", "0,1"]) == 0
+    assert main(["run", "--dry-run", *out, "--seeds", "0,1"]) == 0
     plan = capsys.readouterr().out
     assert "11 runs" in plan  # uniform's seed 0 again, then 5 baselines x 2 seeds (8 by default)
     lines = [line for line in plan.splitlines() if "to run:" in line]
@@ -63,23 +62,22 @@ def test_the_plan_is_every_baseline_at_r3s_settings(baselines, capsys, tmp_path)
     assert all("data.tasks=[mt50]" in line and "eval.seed=1000" in line for line in lines)
     assert [line.split("objective=")[1] for line in lines[1:6]] == list(baselines.WEIGHTINGS)
     with pytest.raises(SystemExit):
-        baselines.main(["run", "--dry-run", "--weightings", "tilted,tar"])
+        main(["run", "--dry-run", "--weightings", "tilted,tar"])
 
 
 @pytest.mark.slow
 def test_the_commands_at_the_ci_scale(baselines, tmp_path, data_root):
-    regimes = _load("regimes")
     study = tmp_path / "regimes"
     r3 = ["r3", "--scale", "ci", "--out", str(study), "--data-root", str(data_root), "--seeds", "0"]
-    assert regimes.main(r3) == 0
+    assert cli.main(["regimes", "run", *r3]) == 0
     out = tmp_path / "baselines"
     common = ["--scale", "ci", "--out", str(out), "--regimes", str(study), "--data-root", str(data_root)]
     common += ["--seeds", "0", "--weightings", "tilted,dro_time"]
     with pytest.raises(SystemExit, match="no finished baseline run"):
-        baselines.main(["table", *common])
-    assert baselines.main(["run", *common]) == 0
-    assert baselines.main(["table", *common]) == 0
-    assert baselines.main(["table", *common, "--tables", str(tmp_path / "tables")]) == 0
+        main(["table", *common])
+    assert main(["run", *common]) == 0
+    assert main(["table", *common]) == 0
+    assert main(["table", *common, "--tables", str(tmp_path / "tables")]) == 0
     for name in ("table.md", "table.csv", "paired.csv", "fit.csv"):  # --tables writes the same tables elsewhere
         assert (tmp_path / "tables" / name).read_text() == (out / name).read_text(), name
     md = (out / "table.md").read_text()
@@ -95,17 +93,17 @@ def test_the_commands_at_the_ci_scale(baselines, tmp_path, data_root):
     df = pd.read_csv(rollouts)
     df.loc[df.index[-1], "steps"] += 1
     df.to_csv(rollouts, index=False)
-    assert baselines.main(["table", *common]) == 0
+    assert main(["table", *common]) == 0
     assert "uniform trained beside the baselines; TAR's row left out" in (out / "table.md").read_text()
     assert "tar" not in set(pd.read_csv(out / "paired.csv").objective)
     shutil.rmtree(next((out / "runs").glob("uniform-*")))
-    with pytest.raises(SystemExit, match=r"does not reproduce R3's committed run .*run --uniform"):
-        baselines.main(["table", *common])
+    with pytest.raises(SystemExit, match=r"does not reproduce R3's committed run .*run baselines --uniform"):
+        main(["table", *common])
 
 
 def test_committed_tables_equal_what_the_table_command_computes(baselines, tmp_path):
     """The tables under benchmarks/results/regimes/baselines are recomputed from its committed runs and R3's."""
-    assert baselines.main(["table", "--tables", str(tmp_path)]) == 0
+    assert main(["table", "--tables", str(tmp_path)]) == 0
     committed = BENCH / "results" / "regimes" / "baselines"
     for name in ("table.md", "table.csv", "paired.csv", "fit.csv"):
         assert (tmp_path / name).read_text() == (committed / name).read_text(), name

@@ -1,7 +1,7 @@
-"""The tables and figures of the paper's experiments (``benchmarks/paper_experiments.py``), written from
-finished runs: Table I with Figs. 3-4, Table III, the critical windows with Fig. 5, the budget curve and the
-sensitivity grid. Each writer takes the runs' specs, the output folder and the provenance, and writes its
-files atomically; runs that have not finished are listed under the table, never silently left out.
+"""The tables and figures of the paper's experiments (:mod:`.paper`), written from finished runs: Table I with
+Figs. 3-4, Table III, the critical windows with Fig. 5, the budget curve and the sensitivity grid. Each writer takes
+the runs' specs, the output folder and the provenance, and writes its files atomically; runs that have not finished
+are listed under the table, never silently left out.
 """
 
 from __future__ import annotations
@@ -9,12 +9,20 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import pandas as pd
 
-if TYPE_CHECKING:
-    from paper_experiments import Spec
+from benchmarks.analysis.figures import (
+    plot_critical_windows,
+    plot_group_deltas,
+    plot_heatmaps,
+    plot_lines,
+    plot_radar,
+    plot_weight_phases,
+)
+from benchmarks.analysis.phases import critical_windows, phase_weight_mass
+from benchmarks.studies.core import Spec
+from benchmarks.studies.writers import controls_markdown, table_one_markdown
 
 __all__ = [
     "BASELINE",
@@ -83,14 +91,12 @@ def _missing_note(missing: Sequence[str]) -> str:
 
 def report_table(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, Path]:
     """Table I (markdown + CSV), the paired statistics, Fig. 3 and Fig. 4 from the protocol runs."""
-    from paper_analysis import plot_group_deltas, plot_radar, table_one_markdown
-
     from tar_rl.io import write_csv_atomic
     from tar_rl.report import compare, paired_table, plot_success_vs_neps
 
     runs, missing = _load(specs)
     if not runs:
-        raise SystemExit("paper_experiments: no finished protocol run yet; run the `protocol` command first")
+        raise SystemExit("paper: no finished protocol run yet; run the `protocol` stage first")
     table = compare(runs)
     paired = paired_table(runs, objectives=[TREATMENT])
     out = {
@@ -127,14 +133,12 @@ def report_table(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, P
 
 def report_controls(specs: Sequence[Spec], folder: Path, prov: dict, family: str) -> dict[str, Path]:
     """Table III for one family: every weighting, success per group, paired difference to uniform."""
-    from paper_analysis import controls_markdown
-
     from tar_rl.io import write_csv_atomic
     from tar_rl.report import compare, paired_table
 
     runs, missing = _load(specs)
     if not runs:
-        raise SystemExit("paper_experiments: no finished control run yet")
+        raise SystemExit("paper: no finished control run yet")
     table = compare(runs)
     paired = paired_table(runs)
     md = (
@@ -158,15 +162,13 @@ def report_controls(specs: Sequence[Spec], folder: Path, prov: dict, family: str
 
 def report_critical_windows(specs: Sequence[Spec], folder: Path, prov: dict, tasks: Sequence[str]) -> dict[str, Path]:
     """Phase shares of TAR weight mass per task (table, figure) and Fig. 5, from the TAR runs' weights.csv."""
-    from paper_analysis import critical_windows, phase_weight_mass, plot_critical_windows, plot_weight_phases
-
     from tar_rl.io import write_csv_atomic
     from tar_rl.report import PHASES
 
     runs, missing = _load([s for s in specs if s.config["objective"]["name"] == TREATMENT])
     runs = [r for r in runs if r.weights is not None]
     if not runs:
-        raise SystemExit("paper_experiments: no finished TAR run with recorded weights (weights.csv) yet")
+        raise SystemExit("paper: no finished TAR run with recorded weights (weights.csv) yet")
     frames = [r.weights.assign(run=r.name) for r in sorted(runs, key=lambda r: (r.policy, r.seed))]
     mass = phase_weight_mass(pd.concat(frames, ignore_index=True))
     windows = critical_windows(mass)
@@ -218,14 +220,12 @@ def report_critical_windows(specs: Sequence[Spec], folder: Path, prov: dict, tas
 
 def report_budget(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, Path]:
     """Success vs demonstrations per task for uniform and TAR (mean ± std over seeds, paired difference)."""
-    from paper_analysis import plot_lines
-
     from tar_rl.io import write_csv_atomic
     from tar_rl.report import paired_t, run_percent
 
     runs, missing = _load(specs)
     if not runs:
-        raise SystemExit("paper_experiments: no finished budget run yet")
+        raise SystemExit("paper: no finished budget run yet")
     rows = []
     by = {}
     for r in runs:
@@ -288,14 +288,12 @@ def report_budget(specs: Sequence[Spec], folder: Path, prov: dict) -> dict[str, 
 
 def report_sensitivity(specs: Sequence[Spec], folder: Path, prov: dict, eval_seed: int) -> dict[str, Path]:
     """The gamma x w_max x cap grid: overall success and the paired difference to uniform per cell."""
-    from paper_analysis import plot_heatmaps
-
     from tar_rl.io import write_csv_atomic
     from tar_rl.report import paired_t, run_percent
 
     runs, missing = _load(specs)
     if not runs:
-        raise SystemExit("paper_experiments: no finished sensitivity run yet")
+        raise SystemExit("paper: no finished sensitivity run yet")
     base = {r.seed: run_percent(r)[("success", "overall")] for r in runs if r.objective == BASELINE}
     cells: dict[tuple, dict[int, float]] = {}
     for r in runs:

@@ -1,36 +1,35 @@
-"""TAR's tuning in R3 (``benchmarks/r3_tuning.py``): the plan, the selection rule on hand-made numbers, and the
-commands at the ci scale."""
+"""TAR's tuning in R3 (``python -m benchmarks.studies tuning``): the plan, the selection rule on hand-made
+numbers, and the commands at the ci scale."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 
 import pandas as pd
 import pytest
 from paths import REPO
 from run_helpers import ROLLOUTS, write_run
 
-BENCH = REPO / "benchmarks" / "r3_tuning.py"
+from benchmarks.studies import cli
+from benchmarks.studies import tuning as tuning_study
 
-
-def _load():
-    spec = importlib.util.spec_from_file_location("r3_tuning", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+BENCH = REPO / "benchmarks"
 
 
 @pytest.fixture(scope="module")
 def tuning():
-    return _load()
+    return tuning_study
+
+
+def main(args: list[str]) -> int:
+    """``python -m benchmarks.studies tuning ...``: a stage's name runs it, other commands as they are."""
+    command, rest = args[0], args[1:]
+    return cli.main(["tuning", *(["run", command] if command in tuning_study.STUDY.stages else [command]), *rest])
 
 
 def test_the_plan_is_the_pre_registered_grid(tuning):
-    cpu = tuning.TUNINGS["cpu"]
+    cpu = tuning.SIZES["cpu"]
     names = list(tuning.settings(cpu))
     cells = [n for n in names if n.startswith("tar-")]
     assert len(cells) == 12 and names[12:] == ["tar_arm", "tar_dimnorm", "uniform"]
@@ -87,7 +86,7 @@ def test_select_refuses_a_setting_without_a_shared_seed(tuning):
 
 
 def test_the_tuning_table_by_hand(tuning):
-    ci = tuning.TUNINGS["cpu"]
+    ci = tuning.SIZES["cpu"]
     success = _success({"tar-g1-paper-w3": -2.0, "tar_arm": 0.5, "tar_dimnorm": 1.0})
     success["tar_dimnorm"][2] += 4.0  # differences 1, 1, 5, 1: mean 2
     md, df = tuning.tuning_table(success, ci)
@@ -193,22 +192,22 @@ def test_the_commands_at_the_ci_scale(tuning, tmp_path, data_root, capsys):
     out = tmp_path / "tuning"
     common = ["--scale", "ci", "--out", str(out), "--data-root", str(data_root)]
     with pytest.raises(SystemExit, match=r"no .*selected\.json yet"):
-        tuning.main(["final", *common])
+        main(["final", *common])
     with pytest.raises(SystemExit, match="4 tuning run"):
-        tuning.main(["select", *common])
-    assert tuning.main(["tune", *common]) == 0
+        main(["select", *common])
+    assert main(["tune", *common]) == 0
     summaries = [json.loads(p.read_text()) for p in (out / "runs").glob("*/summary.json")]
     assert len(summaries) == 4 and all(s["config"]["eval"]["seed"] == 2000 for s in summaries)
     assert sorted(s["objective"] for s in summaries) == ["tar", "tar_arm", "tar_dimnorm", "uniform"]
-    assert tuning.main(["select", *common]) == 0
+    assert main(["select", *common]) == 0
     selected = json.loads((out / "selected.json").read_text())
     assert selected["cell"] == "tar-g0.5-paper-w3" and selected["variant"] in ("tar_arm", "tar_dimnorm")
     capsys.readouterr()
-    assert tuning.main(["final", *common, "--dry-run"]) == 0
+    assert main(["final", *common, "--dry-run"]) == 0
     plan = capsys.readouterr().out
     assert "3 runs: 0 finished" in plan and plan.count("eval.seed=1000") == 3
-    assert tuning.main(["table", *common]) == 0
-    assert tuning.main(["table", *common, "--tables", str(tmp_path / "tables")]) == 0
+    assert main(["table", *common]) == 0
+    assert main(["table", *common, "--tables", str(tmp_path / "tables")]) == 0
     assert (tmp_path / "tables" / "tuning.md").read_text() == (out / "tuning.md").read_text()
     table = pd.read_csv(out / "tuning.csv")
     assert sorted(table.setting) == sorted(["tar-g0.5-paper-w3", "tar_arm", "tar_dimnorm", "uniform"])
@@ -216,7 +215,7 @@ def test_the_commands_at_the_ci_scale(tuning, tmp_path, data_root, capsys):
     # a sweep cut short before uniform's run finished: the table shows the finished settings without a difference
     uniform = next(p for p in (out / "runs").iterdir() if p.name.startswith("uniform-"))
     (uniform / "summary.json").rename(uniform / "summary.json.away")
-    assert tuning.main(["table", *common, "--tables", str(tmp_path / "partial")]) == 0
+    assert main(["table", *common, "--tables", str(tmp_path / "partial")]) == 0
     partial = pd.read_csv(tmp_path / "partial" / "tuning.csv").set_index("setting")
     assert (
         partial.loc["tar_arm", "n_pairs"] == 0
@@ -227,8 +226,8 @@ def test_the_commands_at_the_ci_scale(tuning, tmp_path, data_root, capsys):
 
 def test_committed_tables_equal_what_the_table_command_computes(tuning, tmp_path):
     """The tables under benchmarks/results/regimes/tuning are recomputed from its committed runs."""
-    assert tuning.main(["table", "--tables", str(tmp_path)]) == 0
-    committed = BENCH.parent / "results" / "regimes" / "tuning"
+    assert main(["table", "--tables", str(tmp_path)]) == 0
+    committed = BENCH / "results" / "regimes" / "tuning"
     for name in ("tuning.md", "tuning.csv", "final.md", "final.csv"):
         assert (tmp_path / name).is_file() == (committed / name).is_file(), name
         if (committed / name).is_file():

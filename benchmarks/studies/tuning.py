@@ -1,64 +1,46 @@
 """TAR's tuning in the regime study's R3, as pre-registered (``results/regimes/PLAN.md``, "Tuning TAR in R3").
 
-Usage::
+Stages (``python -m benchmarks.studies tuning run STAGE``; every run lands in ``<out>/runs/``, named by its
+settings):
 
-    python benchmarks/r3_tuning.py COMMAND [--scale cpu|ci] [--out DIR] [--jobs N] [--data-root DIR] [--dry-run]
-
-Commands (every run lands in ``<out>/runs/``, named by its settings; running a command again skips finished
-runs and resumes interrupted ones):
-
-* ``tune``: R3's runs (MT50, 50 demonstrations per task, about 20 passes) for TAR over gamma x cap x
-  w_max, the two element variants (``tar_arm``, ``tar_dimnorm``) and uniform, on the tuning seeds,
-  evaluated on the tuning evaluation seed (2000) only.
+* ``tune``: R3's runs (MT50, 50 demonstrations per task, about 20 passes) for TAR over gamma x cap x w_max, the
+  two element variants (``tar_arm``, ``tar_dimnorm``) and uniform, on the tuning seeds, evaluated on the tuning
+  evaluation seed (2000) only.
 * ``select``: applies the selection rule (:func:`select`) to the finished tuning runs and writes
-  ``<out>/selected.json``; refused until every tuning run has finished, and refused to change once a
-  final run has started.
-* ``final``: the selected cell, the selected variant and uniform on the final seeds, with R3's
-  evaluation (seed 1000).
-* ``table [--tables DIR]``: ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on
-  the tuning seed, per seed, with its fit and weight statistics and their rank correlations with the difference)
-  and, once final runs finished, ``final.md``/``final.csv`` (paired comparisons to uniform with Holm over the
-  two, and the MDE; at the cpu scale also tar-rl's defaults as R3 compared them, from the regime study's
-  ``decision.csv``, and how many final uniform runs reproduce R3's committed ones), all recomputed from the runs
-  and written into ``<out>`` or ``DIR``.
-* ``collect --from DIR``: copy the finished runs of a runs folder into ``<out>/runs`` (config, summary,
-  compressed logs; never ``weights.csv``, which no analysis of the tuning reads, nor checkpoints).
+  ``<out>/selected.json``; refused until every tuning run has finished, and refused to change once a final run
+  has started.
+* ``final``: the selected cell, the selected variant and uniform on the final seeds, with R3's evaluation
+  (seed 1000).
 
-The ``ci`` scale runs the same commands on two tasks for a few steps with a smaller grid (the tests' size).
+``table`` writes ``tuning.md``/``tuning.csv`` (every setting's success and paired difference to uniform on the
+tuning seed, per seed, with its fit and weight statistics and their rank correlations with the difference) and,
+once final runs finished, ``final.md``/``final.csv`` (paired comparisons to uniform with Holm over the two, and
+the MDE; at the cpu scale also tar-rl's defaults as R3 compared them, from the regime study's ``decision.csv``,
+and how many final uniform runs reproduce R3's committed ones). ``collect`` keeps no ``weights.csv``: no analysis
+of the tuning reads one. The ``ci`` scale runs the same stages on two tasks for a few steps with a smaller grid
+(the tests' size).
 """
 
 from __future__ import annotations
 
 import argparse
-import io
-import json
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # regimes.py and paper_experiments.py beside this script
-from paper_analysis import fmt_p
-from paper_experiments import Planner, Spec, execute, provenance
-from regimes import (
-    FINAL_SHARE,
-    STUDIES,
-    check_pairs,
-    collect,
-    exit_code,
-    fit_markdown,
-    fit_summary,
-    jobs_and_out,
-    reproduces,
-    seed_major,
-    study_parser,
-    tables_dir,
-)
+from benchmarks.studies import regimes
+from benchmarks.studies.cli import RESULTS, Context, Study, tables_dir
+from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_summary, holm_into, paired
+from benchmarks.studies.core import Arm, Scale, Spec, Stage, seed_major
+from benchmarks.studies.records import provenance, read_json, reproduces
+from benchmarks.studies.sweep import execute
+from benchmarks.studies.writers import fit_markdown, fmt_p, write_outputs
 
-COMMANDS = ("tune", "select", "final", "table", "collect")
+__all__ = ["SIZES", "STUDY", "Tuning", "select", "settings"]
+
 BASELINE = "uniform"
 VARIANTS = ("tar_arm", "tar_dimnorm")  # in the order the plan lists them (a tie goes to the first)
 DEFAULTS = {"gamma": 1.0, "cap": "paper", "w_max": 3.0}  # tar-rl's defaults (the paper publishes no values)
@@ -71,7 +53,8 @@ class Tuning:
     """The tuning's sizes at one scale.
 
     Attributes:
-        r3: R3's overrides (from ``regimes.py``), without the evaluation seed.
+        scale: the regime study's scale (shared overrides, time model).
+        r3: R3's overrides (:mod:`.regimes`), without the evaluation seed.
         gammas, caps, w_maxes: the grid of TAR cells.
         tune_seeds: training seeds of the tuning runs.
         tune_eval_seed: the tuning evaluation seed.
@@ -79,6 +62,7 @@ class Tuning:
         final_eval_seed: R3's evaluation seed.
     """
 
+    scale: Scale
     r3: tuple[str, ...]
     gammas: tuple[float, ...]
     caps: tuple[str, ...]
@@ -93,9 +77,10 @@ def _without_eval_seed(overrides: Sequence[str]) -> tuple[str, ...]:
     return tuple(o for o in overrides if not o.startswith("eval.seed="))
 
 
-TUNINGS = {
+SIZES = {
     "cpu": Tuning(
-        r3=_without_eval_seed(STUDIES["cpu"].r3),
+        scale=regimes.SIZES["cpu"].scale,
+        r3=_without_eval_seed(regimes.SIZES["cpu"].r3),
         gammas=(0.25, 0.5, 1.0),
         caps=("paper", "exact"),
         w_maxes=(1.5, 3.0),
@@ -105,7 +90,8 @@ TUNINGS = {
         final_eval_seed=1000,
     ),
     "ci": Tuning(
-        r3=_without_eval_seed(STUDIES["ci"].r3),
+        scale=regimes.SIZES["ci"].scale,
+        r3=_without_eval_seed(regimes.SIZES["ci"].r3),
         gammas=(0.5,),
         caps=("paper",),
         w_maxes=(3.0,),
@@ -137,21 +123,19 @@ def settings(tuning: Tuning) -> dict[str, tuple[str, ...]]:
     return out
 
 
-def _specs(planner: Planner, tuning: Tuning, chosen: dict[str, tuple[str, ...]], seeds, eval_seed) -> dict:
-    return {
-        name: [planner.spec(*tuning.r3, f"eval.seed={eval_seed}", f"seed={s}", *objective) for s in seeds]
-        for name, objective in chosen.items()
-    }
+def tune_stage(tuning: Tuning) -> Stage:
+    """Every setting on the tuning seeds, evaluated on the tuning evaluation seed."""
+    arms = tuple(Arm(name, objective) for name, objective in settings(tuning).items())
+    base = (*tuning.r3, f"eval.seed={tuning.tune_eval_seed}")
+    return Stage("tune", "every setting on the tuning seeds", base, arms, tuning.tune_seeds)
 
 
-def tune_specs(planner: Planner, tuning: Tuning) -> dict[str, list[Spec]]:
-    return _specs(planner, tuning, settings(tuning), tuning.tune_seeds, tuning.tune_eval_seed)
-
-
-def final_specs(planner: Planner, tuning: Tuning, selected: dict) -> dict[str, list[Spec]]:
+def final_stage(tuning: Tuning, selected: dict) -> Stage:
+    """The selected cell, the selected variant and uniform on the final seeds, with R3's evaluation."""
     every = settings(tuning)
-    chosen = {name: every[name] for name in (selected["cell"], selected["variant"], BASELINE)}
-    return _specs(planner, tuning, chosen, tuning.final_seeds, tuning.final_eval_seed)
+    arms = tuple(Arm(name, every[name]) for name in (selected["cell"], selected["variant"], BASELINE))
+    base = (*tuning.r3, f"eval.seed={tuning.final_eval_seed}")
+    return Stage("final", "the selected settings on the final seeds", base, arms, tuning.final_seeds)
 
 
 # -- The selection rule ------------------------------------------------------------------------------
@@ -190,7 +174,7 @@ def select(success: dict[str, dict[int, float]]) -> dict:
     uniform = success[BASELINE]
     deltas = {name: mean_paired_delta(values, uniform) for name, values in success.items() if name != BASELINE}
     if any(math.isnan(d) for d in deltas.values()):
-        raise SystemExit("r3_tuning: a setting shares no seed with uniform; every tuning run must finish first")
+        raise SystemExit("tuning: a setting shares no seed with uniform; every tuning run must finish first")
     cells = [n for n in deltas if n.startswith("tar-")]
     best = max(deltas[n] for n in cells)
     cell = min((n for n in cells if deltas[n] >= best - TIE), key=lambda n: (distance(n), -deltas[n]))
@@ -227,7 +211,7 @@ def tuning_table(
     success: dict[str, dict[int, float]], tuning: Tuning, loaded: dict[str, list] | None = None
 ) -> tuple[str, pd.DataFrame]:
     """Every setting's overall success and paired difference to uniform on the tuning seed, per seed; with the
-    loaded runs (``setting -> runs``) also each setting's :func:`regimes.fit_summary` (:func:`fit_section`)."""
+    loaded runs (``setting -> runs``) also each setting's :func:`.compare.fit_summary` (:func:`fit_section`)."""
     from tar_rl.report import paired_t
 
     uniform = success.get(BASELINE, {})
@@ -275,7 +259,7 @@ def tuning_table(
 
 
 def fit_section(deltas: pd.DataFrame, loaded: dict[str, list]) -> tuple[list[str], pd.DataFrame]:
-    """Per setting, :func:`regimes.fit_summary` of its (finished) runs, and the Spearman correlation over the TAR
+    """Per setting, :func:`.compare.fit_summary` of its (finished) runs, and the Spearman correlation over the TAR
     settings (cells and variants with a paired difference) of the difference to uniform with the largest weight,
     the ESS fraction and the held-out loss: whether the settings that concentrate the weight less, and fit
     held-out steps better, do better."""
@@ -342,15 +326,12 @@ def final_table(
     ``reference`` (:func:`paper_reference`) adds tar-rl's defaults as R3 measured them, outside the Holm
     correction; ``reproduced`` (:func:`uniform_reproduced`) says whether R3's uniform runs are the final ones.
     """
-    from tar_rl.report import holm, min_detectable_effect, paired_table
-
     rows = []
     for role in ("cell", "variant"):
         name = selected[role]
         if not loaded.get(name) or not loaded.get(BASELINE):
             continue
-        paired = paired_table([*loaded[BASELINE], *loaded[name]], file=io.StringIO())
-        rec = paired[(paired["metric"] == "success") & (paired["level"] == "overall")].iloc[0]
+        rec = paired([*loaded[BASELINE], *loaded[name]], loaded[name][0].objective)
         rows.append(
             {
                 "role": role,
@@ -362,11 +343,10 @@ def final_table(
                 "ci_low": rec["ci_low"],
                 "ci_high": rec["ci_high"],
                 "p": rec["p_value"],
-                "mde": min_detectable_effect(rec["delta_std"], int(rec["n_pairs"])),
+                "mde": rec["mde"],
             }
         )
-    for r, p in zip(rows, holm([r["p"] for r in rows])):
-        r["holm_p"] = p
+    holm_into(rows, "p")
     if reference is not None:
         rows.append({**reference, "holm_p": math.nan})
     lines = [
@@ -397,90 +377,100 @@ def final_table(
     return "\n".join(md) + "\n", pd.DataFrame(rows)
 
 
-# -- Command line --------------------------------------------------------------------------------------
+# -- The study -------------------------------------------------------------------------------------------
 
 
-def _read_selected(out: Path) -> dict | None:
-    path = out / SELECTED_FILE
-    return json.loads(path.read_text()) if path.is_file() else None
+def plan(ctx: Context) -> dict[str, list[Spec]]:
+    """The tuning runs and, once a selection is recorded, the final runs."""
+    plans = {"tune": seed_major(tune_stage(ctx.sizes).specs(ctx.planner))}
+    selected = read_json(ctx.out / SELECTED_FILE)
+    if selected is not None:
+        plans["final"] = seed_major(final_stage(ctx.sizes, selected).specs(ctx.planner))
+    return plans
 
 
-def _parser() -> argparse.ArgumentParser:
-    return study_parser(
-        "r3_tuning.py",
-        "TAR's pre-registered tuning in R3: runs and tables.",
-        COMMANDS,
-        "benchmarks/results/regimes/tuning",
-        seeds=False,
-    )
+def write_selection(ctx: Context) -> None:
+    """The ``select`` stage: the rule on the finished tuning runs, written to ``selected.json``."""
+    from tar_rl.io import write_json_atomic
+
+    specs = tune_stage(ctx.sizes).specs(ctx.planner)
+    unfinished = [s.run_dir.name for s in seed_major(specs) if not s.finished]
+    if unfinished:
+        names = ", ".join(unfinished[:4])
+        raise SystemExit(f"tuning: {len(unfinished)} tuning run(s) have not finished: {names}")
+    success, loaded = overall_success(specs)
+    _check_commits(loaded)
+    choice = select(success)
+    path = ctx.out / SELECTED_FILE
+    selected = read_json(path)
+    if selected is not None and (selected["cell"], selected["variant"]) != (choice["cell"], choice["variant"]):
+        started = [s for s in seed_major(final_stage(ctx.sizes, selected).specs(ctx.planner)) if s.run_dir.exists()]
+        if started:
+            raise SystemExit(f"tuning: final runs of {path}'s choice have started; not changed")
+    write_json_atomic(choice, path)
+    print(f"selected: cell {choice['cell']}, variant {choice['variant']} ({path})")
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point (module docstring). Returns 0, or 1 when a run failed (the others still ran)."""
-    from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
-
-    argv = sys.argv[1:] if argv is None else list(argv)
-    args = _parser().parse_args(argv)
-    tuning, scale = TUNINGS[args.scale], STUDIES[args.scale].scale
-    jobs, out = jobs_and_out(
-        args, scale, "r3_tuning", Path(__file__).resolve().parent / "results" / "regimes" / "tuning"
-    )
-    planner = Planner(scale, out, args.data_root)
-    logs = out / "logs"
-    failed: list[Spec] = []
-    selected = _read_selected(out)
-    if args.command == "collect":
-        if not args.source:
-            raise SystemExit("r3_tuning: collect needs --from DIR (a runs folder)")
-        names = collect(Path(args.source), out)
-        print(f"copied {len(names)} finished run(s) into {out / 'runs'}: " + ", ".join(names))
-    elif args.command == "tune":
-        failed = execute(scale, seed_major(tune_specs(planner, tuning)), jobs, args.dry_run, logs)
-    elif args.command == "select":
-        specs = tune_specs(planner, tuning)
-        unfinished = [s.run_dir.name for s in seed_major(specs) if not s.finished]
-        if unfinished:
-            names = ", ".join(unfinished[:4])
-            raise SystemExit(f"r3_tuning: {len(unfinished)} tuning run(s) have not finished: {names}")
-        success, loaded = overall_success(specs)
-        _check_commits(loaded)
-        choice = select(success)
-        if selected is not None and (selected["cell"], selected["variant"]) != (choice["cell"], choice["variant"]):
-            started = [s for s in seed_major(final_specs(planner, tuning, selected)) if s.run_dir.exists()]
-            if started:
-                raise SystemExit(f"r3_tuning: final runs of {out / SELECTED_FILE}'s choice have started; not changed")
-        write_json_atomic(choice, out / SELECTED_FILE)
-        print(f"selected: cell {choice['cell']}, variant {choice['variant']} ({out / SELECTED_FILE})")
-    elif args.command == "final":
+def run(ctx: Context, stage: str) -> list[Spec]:
+    """Train one stage (module docstring); returns the runs that failed."""
+    if stage == "select":
+        write_selection(ctx)
+        return []
+    if stage == "tune":
+        specs = tune_stage(ctx.sizes).specs(ctx.planner)
+    else:
+        selected = read_json(ctx.out / SELECTED_FILE)
         if selected is None:
-            raise SystemExit(f"r3_tuning: no {out / SELECTED_FILE} yet; run `select` first")
-        failed = execute(scale, seed_major(final_specs(planner, tuning, selected)), jobs, args.dry_run, logs)
-    elif args.command == "table":
-        success, loaded = overall_success(tune_specs(planner, tuning))
-        if not any(success.values()):
-            raise SystemExit("r3_tuning: no finished tuning run yet")
-        _check_commits({k: v for k, v in loaded.items() if v})
-        dest = tables_dir(args, out)
-        md, df = tuning_table(success, tuning, loaded)
-        atomic_write(dest / "tuning.md", lambda f: f.write(md))
-        write_csv_atomic(df.round(6), dest / "tuning.csv")
+            raise SystemExit(f"tuning: no {ctx.out / SELECTED_FILE} yet; run `select` first")
+        specs = final_stage(ctx.sizes, selected).specs(ctx.planner)
+    return execute(ctx.scale, seed_major(specs), ctx.jobs, ctx.args.dry_run, ctx.logs)
+
+
+def final_outputs(ctx: Context, selected: dict) -> dict[str, tuple[str, pd.DataFrame]]:
+    """``final.md``/``final.csv`` once a final run of the selection and uniform's finished (else nothing)."""
+    planned = final_stage(ctx.sizes, selected).specs(ctx.planner)
+    _, final = overall_success(planned)
+    if not final.get(BASELINE) or not (final.get(selected["cell"]) or final.get(selected["variant"])):
+        return {}
+    _check_commits({k: v for k, v in final.items() if v})
+    committed = RESULTS / "regimes"
+    reference = paper_reference(committed / "decision.csv") if ctx.args.scale == "cpu" else None
+    final_uniform = [s.run_dir for s in planned[BASELINE] if s.finished]
+    reproduced = uniform_reproduced(final_uniform, committed / "runs") if reference else None
+    return {"final": final_table(final, selected, reference, reproduced)}
+
+
+def table(ctx: Context) -> None:
+    """``tuning.md``/``.csv`` and, once final runs finished, ``final.md``/``.csv`` (module docstring)."""
+    success, loaded = overall_success(tune_stage(ctx.sizes).specs(ctx.planner))
+    if not any(success.values()):
+        raise SystemExit("tuning: no finished tuning run yet")
+    _check_commits({k: v for k, v in loaded.items() if v})
+    outputs = {"tuning": tuning_table(success, ctx.sizes, loaded)}
+    selected = read_json(ctx.out / SELECTED_FILE)
+    if selected is not None:
+        outputs.update(final_outputs(ctx, selected))
+    texts = {f"{name}.md": md for name, (md, _) in outputs.items()}
+    tables = {f"{name}.csv": df for name, (_, df) in outputs.items()}
+    write_outputs(tables_dir(ctx), texts, tables, provenance(ctx.scale, ctx.study.name, ctx.argv[1:]))
+    for md in texts.values():
         print(md)
-        if selected is not None:
-            planned = final_specs(planner, tuning, selected)
-            _, final = overall_success(planned)
-            if final.get(BASELINE) and (final.get(selected["cell"]) or final.get(selected["variant"])):
-                _check_commits({k: v for k, v in final.items() if v})
-                regimes = Path(__file__).resolve().parent / "results" / "regimes"
-                reference = paper_reference(regimes / "decision.csv") if args.scale == "cpu" else None
-                final_uniform = [s.run_dir for s in planned[BASELINE] if s.finished]
-                reproduced = uniform_reproduced(final_uniform, regimes / "runs") if reference else None
-                md, df = final_table(final, selected, reference, reproduced)
-                atomic_write(dest / "final.md", lambda f: f.write(md))
-                write_csv_atomic(df.round(6), dest / "final.csv")
-                print(md)
-        write_json_atomic(provenance(scale, argv, "r3_tuning.py"), dest / "provenance.json")
-    return exit_code(failed)
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def _with_options(tuning: Tuning, args: argparse.Namespace) -> Tuning:
+    if args.seeds is not None:
+        raise SystemExit("tuning: --seeds does not apply (the plan fixes the tuning and final seeds)")
+    return tuning
+
+
+STUDY = Study(
+    name="tuning",
+    about="TAR's pre-registered tuning in R3: runs and tables.",
+    scales=SIZES,
+    stages=("tune", "select", "final"),
+    plan=plan,
+    run=run,
+    table=table,
+    results=lambda scale: "regimes/tuning" if scale == "cpu" else None,
+    with_options=_with_options,
+)

@@ -1,10 +1,11 @@
-"""The R3 diagnosis (``benchmarks/r3_diagnosis.py``): switch detection, phase shares, switch ratios and per-task
-Δ on hand-made recordings and runs against values worked out by hand, its refusals, and its committed outputs."""
+"""The R3 diagnosis (``python -m benchmarks.analysis diagnosis | dims``): switch detection, phase shares, switch
+ratios and per-task Δ on hand-made recordings and runs against values worked out by hand, its refusals, and its
+committed outputs."""
 
 from __future__ import annotations
 
+import json
 import math
-import sys
 
 import numpy as np
 import pandas as pd
@@ -13,8 +14,10 @@ import yaml
 from paths import REPO
 from run_helpers import write_run
 
-sys.path.insert(0, str(REPO / "benchmarks"))  # r3_diagnosis.py
-import r3_diagnosis as diag
+from benchmarks.analysis import diagnosis as diag
+from benchmarks.analysis import dims as dims_module
+from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW
+from tar_rl.report import phases
 
 COMMITTED = REPO / "benchmarks" / "results" / "regimes" / "diagnosis"
 S, F = True, False
@@ -44,18 +47,18 @@ def _weights(tasks, emphasis: bool) -> pd.DataFrame:
 
 
 def test_switch_steps_treat_zero_as_open_and_never_flag_the_first_step():
-    got = diag.switch_steps([0.3, 0, 0, 1, 0.5, -1, 0, 0.2])
+    got = phases.switch_steps([0.3, 0, 0, 1, 0.5, -1, 0, 0.2])
     # closing: T F F T T F F T -> changes at 1, 3, 5, 7; -1 -> 0 is no change (both open)
     assert got.tolist() == [F, S, F, S, F, S, F, S]
-    assert diag.switch_steps([1.0]).tolist() == [F]
-    assert diag.near(np.array([F, F, S, F, F, F, F]), 1).tolist() == [F, S, S, S, F, F, F]
-    assert diag.near(np.array([S, F, F, F, F, F, S]), 2).tolist() == [S, S, S, F, S, S, S]
+    assert phases.switch_steps([1.0]).tolist() == [F]
+    assert phases.near(np.array([F, F, S, F, F, F, F]), 1).tolist() == [F, S, S, S, F, F, F]
+    assert phases.near(np.array([S, F, F, F, F, F, S]), 2).tolist() == [S, S, S, F, S, S, S]
 
 
 def _labelled_by_hand() -> pd.DataFrame:
     parts = []
     for seed, emphasis in ((0, True), (1, False)):
-        w = diag.label_steps(_weights(["reach", "assembly"], emphasis))
+        w = phases.label_steps(_weights(["reach", "assembly"], emphasis), STEP_KEYS, WINDOW)
         parts.append(w.assign(objective="tar", seed=seed))
     df = pd.concat(parts, ignore_index=True)
     return df.assign(at=df["step"].map({1872: "full", 3743: "last"}))
@@ -150,20 +153,20 @@ def _hand_dims(root) -> pd.DataFrame:
         w = _weights(list(GRIPPER), objective == "tar" and seed == "s0")
         w = w[w["step"] == 3743]
         switch = (w["task"] == "reach") & w["t"].isin([4, 7])
-        dims = {c: 0.1 for c in diag.XYZ_COLUMNS} | {"loss_dim3": np.where(switch, 0.3, 0.1)}
+        dims = {c: 0.1 for c in dims_module.XYZ_COLUMNS} | {"loss_dim3": np.where(switch, 0.3, 0.1)}
         parts.append(w.assign(run=path.name, objective=objective, seed=int(seed[1:]), **dims))
-    return pd.concat(parts, ignore_index=True)[list(diag.DIMS_COLUMNS)]
+    return pd.concat(parts, ignore_index=True)[list(dims_module.DIMS_COLUMNS)]
 
 
 def test_xyz_share_by_hand():
     frame = pd.DataFrame({"loss_dim0": [1.0, 3.0, 0.0], "loss_dim1": [1.0, 0.0, 0.0], "loss_dim2": [2.0, 0.0, 0.0]})
     frame["loss_dim3"] = [4.0, 1.0, 2.0]
     # (1 + 1 + 2) / 8, 3 / 4, 0 / 2
-    assert diag.xyz_share(frame).tolist() == pytest.approx([0.5, 0.75, 0.0])
-    row = diag._dims_row(frame.assign(weight=1.0, loss=0.0, xyz_share=diag.xyz_share(frame)))
+    assert dims_module.xyz_share(frame).tolist() == pytest.approx([0.5, 0.75, 0.0])
+    row = dims_module._dims_row(frame.assign(weight=1.0, loss=0.0, xyz_share=dims_module.xyz_share(frame)))
     assert row["xyz_share"] == pytest.approx(1.25 / 3)  # the mean of the steps' shares
     assert row["xyz_mass"] == pytest.approx(7 / 14)  # the arm's share of the summed loss: (4 + 3 + 0) / (8 + 4 + 2)
-    assert math.isnan(diag.xyz_share(frame.assign(loss_dim3=0.0)).iloc[2])  # no loss at all: no share
+    assert math.isnan(dims_module.xyz_share(frame.assign(loss_dim3=0.0)).iloc[2])  # no loss at all: no share
 
 
 def test_high_weight_steps_and_deciles_by_hand():
@@ -189,25 +192,25 @@ def test_high_weight_steps_and_deciles_by_hand():
             "loss_dim3": np.where(high, 1.0, 0.0),
         }
     )
-    labelled = diag.label_dims(frame)
+    labelled = dims_module.label_dims(frame)
     # the 90th percentile of 0.1 .. 2.0 (linear): 0.1 + 0.9 * 19 * 0.1 = 1.81, so the weights 1.9 and 2.0 are high
     assert sorted(labelled.loc[labelled["high"], "weight"]) == pytest.approx([1.9, 2.0])
     by_decile = labelled.groupby("decile")["weight"].agg(["min", "max"]).to_numpy()
     assert by_decile == pytest.approx(np.array([[0.1 + 0.2 * k, 0.2 + 0.2 * k] for k in range(10)]))
-    groups = diag.dims_group_table(labelled).set_index(["split", "group"])
+    groups = dims_module.dims_group_table(labelled).set_index(["split", "group"])
     assert groups.loc[("weight", "high"), "xyz_share"] == 0.0 and groups.loc[("weight", "rest"), "xyz_share"] == 1.0
     assert groups.loc[("all", "all"), "xyz_share"] == pytest.approx(18 / 20)
     # switch steps of reach: t 4 and 7 in both episodes; their weights 0.1, 1.9 (episode 0) and 0.7, 0.5 (episode 1)
     assert groups.loc[("switch", "switch"), "steps"] == 4
     assert groups.loc[("switch", "switch"), "mean_weight"] == pytest.approx((0.1 + 1.9 + 0.7 + 0.5) / 4)
     assert groups.loc[("switch", "switch"), "xyz_share"] == pytest.approx(3 / 4)
-    deciles = diag.dims_decile_table(labelled).set_index("decile")
+    deciles = dims_module.dims_decile_table(labelled).set_index("decile")
     assert deciles["xyz_share"].tolist() == [1.0] * 9 + [0.0]
 
 
 def test_the_command_with_a_per_dimension_recording(tmp_path):
     _write_r3(tmp_path / "runs")
-    diag.write_dims(_hand_dims(tmp_path / "runs"), tmp_path / "dims.csv.gz")
+    dims_module.write_dims(_hand_dims(tmp_path / "runs"), tmp_path / "dims.csv.gz")
     args = ["--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--dims", str(tmp_path / "dims.csv.gz")]
     assert diag.main(args) == 0
     groups = pd.read_csv(tmp_path / "out" / "dims_groups.csv").set_index(["objective", "seed", "split", "group"])
@@ -225,7 +228,7 @@ def test_the_command_with_a_per_dimension_recording(tmp_path):
     assert (tmp_path / "out" / "dims_time.png").is_file()
     assert "## Per action dimension" not in diag.diagnose(tmp_path / "runs").markdown  # without the recording
     other = _hand_dims(tmp_path / "runs").replace({"run": {"tar-mlp-s1-deadbeef": "tar-mlp-s1-cafecafe"}})
-    diag.write_dims(other, tmp_path / "other.csv.gz")
+    dims_module.write_dims(other, tmp_path / "other.csv.gz")
     with pytest.raises(SystemExit, match=r"other runs than R3's pairs \(lacking \['tar-mlp-s1-deadbeef'\]"):
         diag.diagnose(tmp_path / "runs", tmp_path / "other.csv.gz")
 
@@ -248,7 +251,7 @@ def test_refusals_name_what_is_missing(tmp_path):
 @pytest.fixture(scope="module")
 def committed():
     """The diagnosis of the committed runs and per-dimension recording."""
-    return diag.diagnose(diag.DEFAULT_RUNS, diag.DEFAULT_DIMS)
+    return diag.diagnose(DEFAULT_RUNS, dims_module.DEFAULT_DIMS)
 
 
 def test_committed_diagnosis_equals_what_the_command_computes(committed):
@@ -263,7 +266,7 @@ def test_committed_diagnosis_equals_what_the_command_computes(committed):
 def test_committed_per_dimension_recording_agrees_with_the_committed_runs(committed):
     """dims.csv.gz holds each R3 run's last recording (the committed weights.csv, to its 6 significant digits)
     with four dim losses whose mean is the step loss (the MLP head's loss is the mean over the action dims)."""
-    assert diag.DEFAULT_DIMS.stat().st_size < 8e6
+    assert dims_module.DEFAULT_DIMS.stat().st_size < 8e6
     dims = committed.dims
     keys = ["run", "task", "episode", "t"]
     own = pd.concat(
@@ -274,5 +277,20 @@ def test_committed_per_dimension_recording_agrees_with_the_committed_runs(commit
     assert len(both) == len(own) == len(dims) == 16 * 11203
     for column in ("loss", "weight", "gripper"):
         np.testing.assert_allclose(both[f"{column}_dims"], both[column], rtol=1e-5, atol=1e-9, err_msg=column)
-    mean = dims[list(diag.DIM_COLUMNS)].mean(axis=1)
+    mean = dims[list(dims_module.DIM_COLUMNS)].mean(axis=1)
     np.testing.assert_allclose(mean, dims["loss"], rtol=2e-5, atol=1e-9)
+
+
+def test_the_training_data_is_opened_by_load_dataset_and_an_old_format_refused(tmp_path):
+    """dims finds the run's dataset by its settings and opens it with tar_rl.data.load_dataset, which refuses a
+    format it no longer reads (R3's datasets were of format 2) with how to build it again."""
+    from types import SimpleNamespace
+
+    settings = {"tasks": ["reach-v3"], "n_demos": 2, "seed": 0, "chunk_horizon": 1, "history": 1}
+    cfg = SimpleNamespace(data=SimpleNamespace(**{k: v for k, v in settings.items() if k != "tasks"}))
+    with pytest.raises(SystemExit, match="0 datasets under"):
+        dims_module._training_demos(tmp_path, cfg, ("reach-v3",), {"obs_mean": [0.0]})
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "metadata.json").write_text(json.dumps({**settings, "format_version": 2}))
+    with pytest.raises(SystemExit, match=r"format version 2, which this tar-rl no longer reads.*build it again"):
+        dims_module._training_demos(tmp_path, cfg, ("reach-v3",), {"obs_mean": [0.0]})

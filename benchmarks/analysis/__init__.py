@@ -1,0 +1,3 @@
+"""Analyses of the studies' runs: the phases of a demonstration and TAR's weight mass in them (:mod:`.phases`), the
+figures (:mod:`.figures`), and R3 diagnosed (:mod:`.pairs`, :mod:`.diagnosis`, :mod:`.dims`; ``python -m
+benchmarks.analysis diagnosis | dims``)."""

@@ -1,0 +1,455 @@
+"""Where does TAR help? The pre-registered regime study (``results/regimes/PLAN.md``) as a study.
+
+Stages (``python -m benchmarks.studies regimes run STAGE``; every run lands in ``<out>/runs/``, named by its
+settings):
+
+* ``r1``: post-training from a pretrained policy. Trains the source (uniform, the 42 MT50 tasks outside the
+  default eight, 25 demonstrations each) if it is not there, then the pairs (uniform, tar) on the default eight
+  tasks from it, for each demonstration budget (3: primary; 10: secondary; ``--budgets`` picks).
+* ``r2-screen``: the screening run (uniform, MT50, evaluated on the tuning seed) and the list of the ten tasks
+  with the lowest success (``<out>/screening.json``), refused once comparison runs started.
+* ``r2``: the pairs on the screened tasks (``<out>/r2_started.json`` records the list they use).
+* ``r3``: the pairs on MT50 with 50 demonstrations per task, about 20 passes over the data.
+* ``r4``, ``r5``: the chunked-heads regimes, R3's data, schedule and evaluation with the ``act`` (R4) and
+  ``flow`` (R5) heads, three arms per seed (:data:`ARMS`), seed by seed. The plan's digest is recorded when its
+  first run starts (``<out>/chunked_started.json``); a changed plan is refused by these stages and by ``table``.
+
+``table`` writes the decision table, the per-group rows and Fig. 3 per regime (:mod:`.regimes_table`); ``collect``
+keeps the checkpoint of R1's source, which the R1 runs start from. The ``ci`` scale runs the same stages on two or
+three tasks for a few steps (what the tests run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import pandas as pd
+
+from benchmarks.studies.cli import Context, Study, ints
+from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, plan_digest, seed_major
+from benchmarks.studies.records import check_started, read_json
+from benchmarks.studies.sweep import execute
+
+__all__ = ["ARMS", "SIZES", "STUDY", "RegimeSizes"]
+
+BASELINE, TREATMENT = "uniform", "tar"
+# The chunked-heads regimes' arms (objective options): uniform, TAR at tar-rl's defaults, the gentle preset. Their
+# four TAR-vs-uniform comparisons (R4, R5 x tar, tar_gentle) are a second Holm family.
+ARMS = ("uniform", "tar", "tar_gentle")
+CHUNKED_STARTED_FILE = "chunked_started.json"
+SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
+# The eight tasks of the recipe's default job: two per difficulty group.
+EIGHT_TASKS = (
+    "[reach,button-press-topdown,basketball,peg-insert-side,assembly,pick-out-of-hole,stick-pull,pick-place-wall]"
+)
+# MT50 without the default eight tasks, in MetaWorld's alphabetical order: R1's pretraining tasks.
+SOURCE_TASKS = (
+    "bin-picking,box-close,button-press-topdown-wall,button-press,button-press-wall,coffee-button,coffee-pull,"
+    "coffee-push,dial-turn,disassemble,door-close,door-lock,door-open,door-unlock,drawer-close,drawer-open,"
+    "faucet-close,faucet-open,hammer,hand-insert,handle-press-side,handle-press,handle-pull-side,handle-pull,"
+    "lever-pull,peg-unplug-side,pick-place,plate-slide-back-side,plate-slide-back,plate-slide-side,plate-slide,"
+    "push-back,push,push-wall,reach-wall,shelf-place,soccer,stick-push,sweep-into,sweep,window-close,window-open"
+)
+
+
+@dataclass(frozen=True)
+class RegimeSizes:
+    """The sizes of the study's runs at one scale (overrides are Hydra's ``key=value``).
+
+    Attributes:
+        scale: the shared overrides, seeds and time model.
+        source: R1's pretraining run.
+        r1: R1's post-training runs (without the budget, seed and objective).
+        r1_budgets: demonstrations per task of R1 (the first is the primary budget).
+        screen: R2's screening run.
+        screen_keep: tasks R2 keeps.
+        r2: R2's runs (without the tasks, seed and objective).
+        r3: R3's runs (without seed and objective).
+        chunked: the chunked-heads regimes' runs (R3's data, schedule and evaluation; without the head, seed and
+            objective).
+        chunked_heads: ``(regime, head, overrides of the head)`` for each chunked-heads regime (R4, R5).
+    """
+
+    scale: Scale
+    source: tuple[str, ...]
+    r1: tuple[str, ...]
+    r1_budgets: tuple[int, ...]
+    screen: tuple[str, ...]
+    screen_keep: int
+    r2: tuple[str, ...]
+    r3: tuple[str, ...]
+    chunked: tuple[str, ...] = ()
+    chunked_heads: tuple[tuple[str, str, tuple[str, ...]], ...] = ()
+
+
+_COMMON = ("logging=quiet", "logging.record_episodes=3", "threads=1")
+_CPU = RegimeSizes(
+    scale=Scale(
+        name="cpu",
+        about="the pre-registered regime study (results/regimes/PLAN.md) on 2 CPU cores",
+        common=_COMMON,
+        seeds=(0, 1, 2, 3, 4, 5, 6, 7),
+        jobs=2,
+    ),
+    source=(
+        "policy=mlp",
+        "policy.task_conditioning=instruction",
+        "objective=uniform",
+        "seed=0",
+        f"data.tasks=[{SOURCE_TASKS}]",
+        "data.n_demos=25",
+        "data.seed=3000",
+        "optim.steps=40000",
+        "eval.rollouts=10",
+        "eval.seed=2000",
+        "logging.record_episodes=1",
+    ),
+    r1=(
+        "policy=mlp",
+        "policy.task_conditioning=instruction",
+        f"data.tasks={EIGHT_TASKS}",
+        "data.seed=0",
+        "optim.steps=8000",
+        "eval.rollouts=50",
+        "eval.seed=1000",
+        "logging.record_weights_at=[4000,-1]",
+    ),
+    r1_budgets=(3, 10),
+    screen=(
+        "policy=mlp",
+        "objective=uniform",
+        "seed=0",
+        "data.tasks=[mt50]",
+        "data.n_demos=10",
+        "data.seed=0",
+        "optim.steps=8000",
+        "eval.rollouts=20",
+        "eval.seed=2000",
+    ),
+    screen_keep=10,
+    r2=(
+        "policy=mlp",
+        "data.n_demos=10",
+        "data.seed=0",
+        "optim.steps=20000",
+        "eval.rollouts=50",
+        "eval.seed=1000",
+        "logging.record_weights_at=[10000,-1]",
+    ),
+    r3=(
+        "policy=mlp",
+        "data.tasks=[mt50]",
+        "data.n_demos=50",
+        "data.seed=0",
+        "optim.steps=3743",  # 20 x 191,624 demonstration steps / (64 x 16) (results/regimes/PLAN.md)
+        "eval.rollouts=20",
+        "eval.seed=1000",
+        "logging.record_weights_at=[1872,-1]",
+    ),
+    chunked=(
+        "data.tasks=[mt50]",
+        "data.n_demos=50",
+        "data.seed=0",
+        "optim.steps=3743",  # R3's schedule
+        "eval.rollouts=20",
+        "eval.seed=1000",
+        "logging.record_weights_at=[1872,-1]",
+        "policy.compile=true",  # the compiled attention: the same model, faster steps (tar_rl.policies.attention)
+    ),
+    chunked_heads=(("R4", "act", ()), ("R5", "flow", ())),  # each head at its defaults
+)
+_TINY = (
+    "data.n_demos=2",
+    "data.batch_segments=4",
+    "data.slice_len=8",
+    "data.workers=1",
+    "optim.steps=4",
+    "optim.warmup=1",
+    "eval.rollouts=1",
+    "eval.horizon=20",
+    "eval.workers=1",
+    "logging.every=1",
+    "logging.checkpoint_every=2",
+    "logging.record_weights_at=[-1]",
+    "diagnostics.heldout_demos=1",
+    "diagnostics.train_episodes=1",
+)
+_CI = RegimeSizes(
+    scale=Scale(
+        name="ci",
+        about="the regime study's commands on two or three tasks, a few steps (the tests' size; no meaningful numbers)",
+        common=(*_COMMON, *_TINY),
+        seeds=(0, 1),
+        jobs=1,
+    ),
+    source=(
+        "policy=mlp",
+        "policy.hidden=[16,16]",
+        "policy.task_conditioning=instruction",
+        "objective=uniform",
+        "seed=0",
+        "data.tasks=[push,drawer-open]",
+        "data.seed=3000",
+        "eval.seed=2000",
+    ),
+    r1=(
+        "policy=mlp",
+        "policy.hidden=[16,16]",
+        "policy.task_conditioning=instruction",
+        "data.tasks=[reach,basketball]",
+        "eval.seed=1000",
+    ),
+    r1_budgets=(1, 2),
+    screen=(
+        "policy=mlp",
+        "policy.hidden=[16,16]",
+        "objective=uniform",
+        "seed=0",
+        "data.tasks=[reach,basketball,push]",
+        "eval.seed=2000",
+        "eval.rollouts=2",
+    ),
+    screen_keep=2,
+    r2=("policy=mlp", "policy.hidden=[16,16]", "eval.seed=1000"),
+    r3=("policy=mlp", "policy.hidden=[16,16]", "data.tasks=[reach,push]", "eval.seed=1000"),
+    chunked=("data.tasks=[reach,push]", "eval.seed=1000"),
+    chunked_heads=(
+        ("R4", "act", ("policy.dim=16", "policy.heads=2", "policy.ffn_dim=16", "policy.latent_dim=4")),
+        ("R5", "flow", ("policy.dim=16", "policy.heads=2", "policy.layers=1", "policy.expert_dim=8")),
+    ),
+)
+SIZES = {"cpu": _CPU, "ci": _CI}
+PAIR = (Arm.objective(BASELINE), Arm.objective(TREATMENT))
+
+
+# -- The stages ------------------------------------------------------------------------------------------
+
+
+def r1_stage(sizes: RegimeSizes, source: Spec, budget: int) -> Stage:
+    """R1's pairs at one budget from ``source`` (which must have finished: its checkpoint is read)."""
+    base = (*sizes.r1, f"data.n_demos={budget}", f"init.from={source.run_dir}")
+    return Stage(f"r1-{budget}", "post-training from the pretrained source", base, PAIR, sizes.scale.seeds)
+
+
+def r2_stage(sizes: RegimeSizes, tasks: Sequence[str]) -> Stage:
+    """R2's pairs on the screened tasks."""
+    base = (*sizes.r2, f"data.tasks=[{','.join(tasks)}]")
+    return Stage("r2", "the pairs on the screened tasks", base, PAIR, sizes.scale.seeds)
+
+
+def r3_stage(sizes: RegimeSizes) -> Stage:
+    """R3's pairs: MT50, 50 demonstrations per task, about 20 passes."""
+    return Stage("r3", "the pairs on MT50, 50 demonstrations per task", sizes.r3, PAIR, sizes.scale.seeds)
+
+
+def chunked_stage(sizes: RegimeSizes, label: str) -> Stage:
+    """The chunked-heads regime ``label`` (``R4``, ``R5``): R3's data with its head, the three :data:`ARMS`."""
+    for regime, head, extra in sizes.chunked_heads:
+        if regime == label:
+            base = (f"policy={head}", *extra, *sizes.chunked)
+            arms = tuple(Arm.objective(a) for a in ARMS)
+            return Stage(label.lower(), f"the chunked head {head}: {', '.join(ARMS)}", base, arms, sizes.scale.seeds)
+    raise SystemExit(f"regimes: no chunked-heads regime {label!r} at this scale")
+
+
+def chunked_heads(sizes: RegimeSizes) -> dict[str, str]:
+    """The chunked-heads regimes' heads by regime."""
+    return {regime: head for regime, head, _ in sizes.chunked_heads}
+
+
+def pairs(stage: Stage, planner: Planner) -> list[Spec]:
+    """A stage's runs seed by seed (each seed's arms together)."""
+    return seed_major(stage.specs(planner))
+
+
+def source_spec(sizes: RegimeSizes, planner: Planner) -> Spec:
+    """R1's pretraining run."""
+    return planner.spec(*sizes.source)
+
+
+def weights_read(sizes: RegimeSizes, planner: Planner) -> list[str]:
+    """The runs whose ``weights.csv`` an analysis reads: R3's, every seed (``python -m benchmarks.analysis
+    diagnosis``), and seed 0 of each arm of the chunked-heads regimes (R4, R5: the weights of each arm on one
+    seed)."""
+    names = [spec.run_dir.name for spec in pairs(r3_stage(sizes), planner)]
+    for label in chunked_heads(sizes):
+        specs = chunked_stage(sizes, label).specs(planner)
+        names += [group[0].run_dir.name for group in specs.values() if group]
+    return names
+
+
+# -- The records of R2's screening and of the chunked plans ---------------------------------------------
+
+
+def screening(out: Path) -> list[str] | None:
+    """The committed R2 task list, or None before screening."""
+    record = read_json(out / SCREENING_FILE)
+    return None if record is None else record["tasks"]
+
+
+def _digest(tasks: Sequence[str]) -> str:
+    return hashlib.sha256(json.dumps(list(tasks)).encode()).hexdigest()[:16]
+
+
+def pick_hardest(rollouts: pd.DataFrame, keep: int) -> list[str]:
+    """The ``keep`` tasks with the lowest success rate; ties broken by task name (pre-registered)."""
+    rates = rollouts.groupby("task")["success"].mean()
+    order = sorted(rates.index, key=lambda t: (float(rates[t]), str(t)))
+    return order[:keep]
+
+
+def write_screening(sizes: RegimeSizes, spec: Spec, out: Path) -> list[str]:
+    """Pick R2's tasks from the finished screening run and write ``screening.json``.
+
+    Raises:
+        SystemExit: comparison runs started with another list (``r2_started.json``).
+    """
+    from tar_rl import runs
+    from tar_rl.io import write_json_atomic
+    from tar_rl.report import load_run, run_file
+
+    run = load_run(spec.run_dir)
+    rollouts = pd.read_csv(run_file(spec.run_dir, runs.ROLLOUTS_FILE))
+    tasks = pick_hardest(rollouts[rollouts["step"] == rollouts["step"].max()], sizes.screen_keep)
+    started = out / STARTED_FILE
+    if started.is_file() and json.loads(started.read_text())["tasks"] != tasks:
+        raise SystemExit(
+            f"regimes: R2's comparison runs started with the tasks in {started}; the screening now gives {tasks}. "
+            "The list is fixed once comparison runs start: remove the R2 runs and that file to screen again."
+        )
+    rates = rollouts.groupby("task")["success"].mean()
+    write_json_atomic(
+        {
+            "tasks": tasks,
+            "digest": _digest(tasks),
+            "rule": f"the {sizes.screen_keep} tasks with the lowest success of the screening run; ties by name",
+            "screening_run": run.name,
+            "success": {t: float(rates[t]) for t in sorted(rates.index)},
+        },
+        out / SCREENING_FILE,
+    )
+    return tasks
+
+
+def check_r2_started(out: Path, tasks: Sequence[str]) -> None:
+    """Record R2's task list when its comparison runs start; refuse a list that differs from the recorded one."""
+
+    def refusal(key, recorded, now):
+        return (
+            f"regimes: {out / SCREENING_FILE} lists {list(tasks)} but R2's comparison runs started with "
+            f"{recorded} ({out / STARTED_FILE}): a screening list may not change after comparison runs started"
+        )
+
+    check_started(out / STARTED_FILE, {"tasks": list(tasks), "digest": _digest(tasks)}, True, refusal)
+
+
+def check_plan_started(out: Path, label: str, specs: dict[str, list[Spec]], record: bool) -> None:
+    """Refuse a chunked-heads plan that differs from the one its runs started with (``chunked_started.json``);
+    with ``record``, record the plan when it is the regime's first."""
+    path = out / CHUNKED_STARTED_FILE
+
+    def refusal(key, recorded, now):
+        return (
+            f"regimes: {key}'s plan changed after its runs started (recorded {recorded} in {path}, now {now}); a "
+            f"plan may not change once its runs started: restore it, or remove {key}'s runs and its entry there"
+        )
+
+    check_started(path, {label: plan_digest(specs)}, record, refusal)
+
+
+# -- The study -------------------------------------------------------------------------------------------
+
+
+def plan(ctx: Context) -> dict[str, list[Spec]]:
+    """Every regime's planned runs (R1 needs its source to have finished, R2 its screening list), by regime."""
+    sizes, planner = ctx.sizes, ctx.planner
+    plans: dict[str, list[Spec]] = {}
+    source = source_spec(sizes, planner)
+    if source.finished:
+        plans["R1"] = pairs(r1_stage(sizes, source, sizes.r1_budgets[0]), planner)
+        plans["R1-10"] = [s for n in sizes.r1_budgets[1:] for s in pairs(r1_stage(sizes, source, n), planner)]
+    tasks = screening(ctx.out)
+    if tasks is not None:
+        plans["R2"] = pairs(r2_stage(sizes, tasks), planner)
+    plans["R3"] = pairs(r3_stage(sizes), planner)
+    for label in chunked_heads(sizes):
+        plans[label] = pairs(chunked_stage(sizes, label), planner)
+    return plans
+
+
+def run(ctx: Context, stage: str) -> list[Spec]:
+    """Train one stage (module docstring); returns the runs that failed."""
+    sizes, planner, out, dry = ctx.sizes, ctx.planner, ctx.out, ctx.args.dry_run
+    scale, logs = sizes.scale, ctx.logs
+    if stage == "r1":
+        source = source_spec(sizes, planner)
+        failed = execute(scale, [source], 1, dry, logs)
+        if not source.finished:
+            print("R1's source has not finished: its post-training runs are planned once it has")
+            return failed
+        budgets = ctx.args.budgets or sizes.r1_budgets
+        specs = [s for n in budgets for s in pairs(r1_stage(sizes, source, n), planner)]
+        return failed + execute(scale, specs, ctx.jobs, dry, logs)
+    if stage == "r2-screen":
+        spec = planner.spec(*sizes.screen)
+        failed = execute(scale, [spec], 1, dry, logs)
+        if spec.finished:
+            print(f"R2's tasks: {write_screening(sizes, spec, out)} ({out / SCREENING_FILE})")
+        return failed
+    if stage == "r2":
+        tasks = screening(out)
+        if tasks is None:
+            raise SystemExit(f"regimes: no {out / SCREENING_FILE} yet; run `r2-screen` first")
+        specs = pairs(r2_stage(sizes, tasks), planner)
+        if not dry:
+            check_r2_started(out, tasks)
+        return execute(scale, specs, ctx.jobs, dry, logs)
+    if stage == "r3":
+        return execute(scale, pairs(r3_stage(sizes), planner), ctx.jobs, dry, logs)
+    specs = chunked_stage(sizes, stage.upper()).specs(planner)
+    check_plan_started(out, stage.upper(), specs, record=not dry)
+    return execute(scale, seed_major(specs), ctx.jobs, dry, logs)
+
+
+def table(ctx: Context) -> None:
+    """The decision table, per-group rows and Fig. 3 (:func:`.regimes_table.write_tables`)."""
+    from benchmarks.studies.cli import tables_dir
+    from benchmarks.studies.records import provenance
+    from benchmarks.studies.regimes_table import write_tables
+
+    prov = provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
+    print(write_tables(ctx, prov, tables_dir(ctx), complete=ctx.args.complete))
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--budgets", type=ints, default=None, help="run r1: only these demonstration budgets")
+    p.add_argument(
+        "--complete", action="store_true", help="table: refuse a chunked-heads regime with a run of its plan missing"
+    )
+
+
+def _with_options(sizes: RegimeSizes, args: argparse.Namespace) -> RegimeSizes:
+    if args.seeds is None:
+        return sizes
+    return replace(sizes, scale=replace(sizes.scale, seeds=args.seeds))
+
+
+STUDY = Study(
+    name="regimes",
+    about="The pre-registered regime study: runs and tables.",
+    scales=SIZES,
+    stages=("r1", "r2-screen", "r2", "r3", "r4", "r5"),
+    plan=plan,
+    run=run,
+    table=table,
+    results=lambda scale: "regimes" if scale == "cpu" else None,
+    options=_options,
+    with_options=_with_options,
+    keep_checkpoint=lambda ctx: [source_spec(ctx.sizes, ctx.planner).run_dir.name],
+    keep_weights=lambda ctx: weights_read(ctx.sizes, ctx.planner),
+)

@@ -1,0 +1,229 @@
+"""The regime study's tables: the decision table (one row per regime and, for the chunked heads, per TAR arm),
+the per-group rows, the chunked heads' fit and weights, and Fig. 3 per regime, from the finished runs.
+
+Pairs (a chunked-heads seed's three runs) trained at different commits or on different machines are refused; a
+chunked-heads regime is tabled over the seeds every arm has finished, and with ``complete`` a missing run of its
+plan is refused, named. The markdown holds no provenance: it is recomputed exactly from the committed runs.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+
+from benchmarks.studies.cli import Context
+from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_means, fit_summary, holm_into
+from benchmarks.studies.core import seed_major
+from benchmarks.studies.regimes import (
+    ARMS,
+    BASELINE,
+    SCREENING_FILE,
+    TREATMENT,
+    check_plan_started,
+    chunked_heads,
+    chunked_stage,
+    plan,
+    screening,
+)
+from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
+
+__all__ = ["PRIMARY", "decision_markdown", "regime_rows", "write_tables"]
+
+PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
+
+
+def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
+    """One decision-table row (success, Fast20, NEPS statistics and fit diagnostics) and the per-group rows."""
+    from tar_rl.report import min_detectable_effect, paired_table
+
+    paired = paired_table(runs, objectives=[TREATMENT], file=io.StringIO())
+    row: dict = {"regime": label}
+    for metric in ("success", "fast20", "neps"):
+        rec = paired[(paired["metric"] == metric) & (paired["level"] == "overall")].iloc[0]
+        row[f"{metric}_uniform"] = rec["baseline_mean"]
+        row[f"{metric}_tar"] = rec["objective_mean"]
+        row[f"d_{metric}"] = rec["delta_mean"]
+        row[f"d_{metric}_ci_low"], row[f"d_{metric}_ci_high"] = rec["ci_low"], rec["ci_high"]
+        row[f"p_{metric}"] = rec["p_value"]
+        if metric == "success":
+            row["pairs"] = int(rec["n_pairs"])
+            row["mde_success"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
+    for obj in (BASELINE, TREATMENT):
+        mine = [r for r in runs if r.objective == obj and r.finished]
+        row.update({f"{name}_{obj}": value for name, value in fit_means(mine).items()})
+    groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(regime=label)
+    return row, groups
+
+
+def _decision_lines(rows: Sequence[dict]) -> list[str]:
+    lines = [
+        "| regime | pairs | success % U / T | Δ success [95% CI] | p | Holm p | MDE (80%) | Δ Fast20 | Δ NEPS "
+        "| passes | final train loss U / T | held-out loss U / T | alignment U / T |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ci = f"[{fmt_num(r['d_success_ci_low'], 2, True)}, {fmt_num(r['d_success_ci_high'], 2, True)}]"
+        lines.append(
+            f"| {r['regime']} | {r['pairs']} | {fmt_num(r['success_uniform'])} / {fmt_num(r['success_tar'])} "
+            f"| {fmt_num(r['d_success'], 2, True)} {ci} | {fmt_p(r['p_success'])} | {fmt_p(r['holm_p'])} "
+            f"| {fmt_num(r['mde_success'], 2)} | {fmt_num(r['d_fast20'], 2, True)} | {fmt_num(r['d_neps'], 2, True)} "
+            f"| {fmt_num(r['passes_uniform'], 0)} "
+            f"| {fmt_num(r['train_loss_uniform'], 4)} / {fmt_num(r['train_loss_tar'], 4)} "
+            f"| {fmt_num(r['heldout_loss_uniform'], 4)} / {fmt_num(r['heldout_loss_tar'], 4)} "
+            f"| {fmt_num(r['alignment_uniform'], 2, True)} / {fmt_num(r['alignment_tar'], 2, True)} |"
+        )
+    return lines
+
+
+def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[str, list[str]]) -> str:
+    """The decision table, per-group rows and notes on missing runs, as markdown."""
+    out = ["# Where does TAR help? Decision table", "", *_decision_lines(rows), ""]
+    out += [
+        "Success, Fast20 and NEPS in 100 x units; Δ = TAR - uniform over paired seeds (lower Fast20/NEPS is better). "
+        "Holm: over the primary comparisons (" + ", ".join(PRIMARY) + "), and separately over the chunked heads' "
+        "four (R4 and R5, each arm against uniform; the row names the arm: `tar` at tar-rl's defaults, "
+        "`tar_gentle` the gentle preset). MDE: the smallest true Δ success a paired "
+        "t-test detects with 80% power at the observed spread. Alignment: Spearman correlation over ten bins of "
+        "episode time between TAR's weight on training demonstrations and the held-out per-step loss.",
+        "",
+        "## Success per difficulty group",
+        "",
+        "| regime | group | pairs | uniform % | TAR % | Δ [95% CI] | p |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for g in groups.to_dict("records"):
+        ci = f"[{fmt_num(g['ci_low'], 2, True)}, {fmt_num(g['ci_high'], 2, True)}]"
+        out.append(
+            f"| {g['regime']} | {g['level']} | {g['n_pairs']} | {fmt_num(g['baseline_mean'])} "
+            f"| {fmt_num(g['objective_mean'])} | {fmt_num(g['delta_mean'], 2, True)} {ci} | {fmt_p(g['p_value'])} |"
+        )
+    pending = {k: v for k, v in missing.items() if v}
+    if pending:
+        out += ["", "## Not finished yet", ""]
+        out += [
+            f"- {k}: {len(v)} run(s) ({', '.join(v[:4])}{', ...' if len(v) > 4 else ''})" for k, v in pending.items()
+        ]
+    return "\n".join(out) + "\n"
+
+
+def chunked_loaded(ctx: Context, label: str, complete: bool) -> tuple[dict, list[str]]:
+    """The finished runs of a chunked-heads regime per arm, over the seeds every arm has finished, and the
+    names of its runs not finished.
+
+    Raises:
+        SystemExit: the plan changed after its runs started; with ``complete``, an arm misses a seed (the
+            runs named); a seed's runs trained at different commits or machines (:func:`check_pairs`).
+    """
+    from tar_rl.report import load_run
+
+    specs = chunked_stage(ctx.sizes, label).specs(ctx.planner)
+    check_plan_started(ctx.out, label, specs, record=False)
+    missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
+    if complete and missing:
+        raise SystemExit(f"regimes: {label} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
+    done = {arm: {s.config["seed"]: s for s in group if s.finished} for arm, group in specs.items()}
+    seeds = sorted(set.intersection(*(set(d) for d in done.values())))
+    loaded = {arm: [load_run(done[arm][seed].run_dir) for seed in seeds] for arm in ARMS}
+    if seeds:
+        check_pairs([run for group in loaded.values() for run in group])
+    return loaded, missing
+
+
+def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list, dict]:
+    """Decision rows (one per regime and TAR arm, Holm over all of them), per-group rows, fit rows, the
+    figure's compare rows and the missing runs of the chunked-heads regimes."""
+    from tar_rl.report import compare
+
+    rows, groups, fits, figure, missing = [], [], [], [], {}
+    for label, head in chunked_heads(ctx.sizes).items():
+        loaded, missing[label] = chunked_loaded(ctx, label, complete)
+        if not loaded[BASELINE]:
+            continue
+        for arm in ARMS:
+            fits.append({"regime": label, "head": head, "arm": arm, **fit_summary(loaded[arm])})
+            table = compare(loaded[arm], file=io.StringIO())
+            figure.append(table.assign(policy=f"{label} {head}", objective=arm))
+        for arm in ARMS[1:]:
+            row, group = regime_rows(f"{label} {arm}", [*loaded[BASELINE], *loaded[arm]])
+            rows.append(row)
+            groups.append(group)
+    holm_into(rows, "p_success")
+    return rows, groups, fits, figure, missing
+
+
+def chunked_markdown(fits: Sequence[dict]) -> str:
+    """The chunked heads' fit diagnostics and weight statistics per regime and arm."""
+    if not fits:
+        return ""
+    lines = ["", "## Chunked heads: fit and weights", ""]
+    lines += fit_markdown(pd.DataFrame(fits), ["regime", "head", "arm"])
+    lines += [
+        "",
+        "Means over the paired seeds; largest weight and ESS (fraction of valid steps) over the last "
+        f"{FINAL_SHARE:.0%} of training steps (a uniform run's weights are all 1).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def pair_tables(ctx: Context) -> tuple[list, list, list, dict]:
+    """The decision rows (Holm over :data:`PRIMARY`), per-group rows, the figure's compare rows and the missing
+    runs of the paired regimes (R1-R3)."""
+    from tar_rl.report import compare, load_run
+
+    rows, groups, figure, missing = [], [], [], {}
+    screened = screening(ctx.out)
+    chunked = set(chunked_heads(ctx.sizes))
+    for label, specs in plan(ctx).items():
+        if label in chunked:
+            continue
+        missing[label] = [s.run_dir.name for s in specs if not s.finished]
+        runs = [load_run(s.run_dir) for s in specs if s.finished]
+        if label == "R2" and screened is not None:
+            for run in runs:
+                if list(run.config["data"]["tasks"]) != list(screened):
+                    raise SystemExit(f"regimes: {run.name} trained on tasks other than {ctx.out / SCREENING_FILE}'s")
+        seeds = {r.seed for r in runs if r.objective == BASELINE} & {r.seed for r in runs if r.objective == TREATMENT}
+        runs = [r for r in runs if r.seed in seeds]
+        if not seeds:
+            continue
+        check_pairs(runs)
+        row, group = regime_rows(label, runs)
+        rows.append(row)
+        groups.append(group)
+        table = compare(runs, file=io.StringIO())
+        figure.append(table[table["objective"].isin([BASELINE, TREATMENT])].assign(policy=label))
+    for r in rows:
+        r["holm_p"] = math.nan
+    holm_into([r for r in rows if r["regime"] in PRIMARY], "p_success")
+    return rows, groups, figure, missing
+
+
+def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -> str:
+    """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head from the
+    finished runs of ``ctx.out``, written into ``dest``; returns the markdown.
+
+    ``complete``: refuse a chunked-heads regime with a run of its plan missing (the final table)."""
+    from tar_rl.report import plot_success_vs_neps
+
+    rows, groups, figure, missing = pair_tables(ctx)
+    c_rows, c_groups, c_fits, c_figure, c_missing = chunked_tables(ctx, complete)
+    rows, groups = rows + c_rows, groups + c_groups
+    missing.update(c_missing)
+    group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
+    md = decision_markdown(rows, group_df, missing) + chunked_markdown(c_fits)
+    tables = {"decision.csv": pd.DataFrame(rows)}
+    if len(group_df):
+        tables["groups.csv"] = group_df
+    write_outputs(dest, {"decision.md": md}, tables, prov)
+    if figure:
+        fig_table = pd.concat(figure, ignore_index=True)
+        plot_success_vs_neps(fig_table, dest / "fig3_regimes.png", caption="regimes as families: uniform -> TAR")
+    if c_figure:
+        fig_table = pd.concat(c_figure, ignore_index=True)
+        caption = "chunked heads (R4 act, R5 flow): uniform -> tar, tar_gentle"
+        plot_success_vs_neps(fig_table, dest / "fig3_chunked.png", caption=caption)
+    return md

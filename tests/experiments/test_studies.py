@@ -1,0 +1,151 @@
+"""The study core (``benchmarks/studies``): stages, the plan's order and digest, the record of a started plan, the
+command line's refusals, and the run names every study plans, against the names the earlier per-study scripts
+planned (``planned_runs.json``, computed with them at the cpu and ci scales)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from paths import REPO
+
+from benchmarks.studies import baselines, cli, paper, regimes, tuning
+from benchmarks.studies.core import Arm, Planner, Scale, Stage, plan_digest, seed_major
+from benchmarks.studies.records import check_started
+
+PLANNED = json.loads((Path(__file__).parent / "planned_runs.json").read_text())
+COMMITTED = REPO / "benchmarks" / "results" / "regimes"
+OUT = Path("OUT")  # the folder the recorded names were planned in (R1's runs: the committed regime study's)
+
+
+def test_a_stage_is_arms_by_seeds_over_its_base_in_the_order_given():
+    stage = Stage("s", "a stage", ("a=1", "b=2"), (Arm.objective("uniform"), Arm("x", ("c=3", "d=4"))), (0, 7))
+    assert stage.overrides(stage.arms[1], 7) == ("a=1", "b=2", "seed=7", "c=3", "d=4")
+    last = Stage("s", "a stage", ("a=1",), (Arm.objective("tar"),), (0,), seed_last=True)
+    assert last.overrides(last.arms[0], 0) == ("a=1", "objective=tar", "seed=0")
+
+
+def test_seed_major_takes_every_arm_of_a_seed_before_the_next_seed():
+    specs = {"u": ["u0", "u1", "u2"], "t": ["t0", "t1"], "g": ["g0", "g1", "g2"]}
+    assert seed_major(specs) == ["u0", "t0", "g0", "u1", "t1", "g1", "u2", "g2"]
+    assert seed_major({}) == []
+
+
+def test_the_plan_digest_hashes_the_overrides_without_the_machine_folders():
+    def spec(*overrides):
+        return SimpleNamespace(overrides=overrides)
+
+    specs = {"u": [spec("x=1", "runs_root=/a/runs", "data.root=/d", "seed=0")]}
+    moved = {"u": [spec("x=1", "runs_root=/elsewhere", "data.root=d2", "seed=0")]}
+    by_hand = hashlib.sha256(json.dumps({"u": [["x=1", "seed=0"]]}, sort_keys=True).encode()).hexdigest()[:16]
+    assert plan_digest(specs) == plan_digest(moved) == by_hand
+    assert plan_digest({"u": [spec("x=2", "seed=0")]}) != by_hand
+
+
+def test_a_started_record_is_written_once_and_a_change_refused(tmp_path):
+    path = tmp_path / "started.json"
+
+    def refusal(key, recorded, now):
+        return f"{key} changed: {recorded} -> {now}"
+
+    check_started(path, {"R4": "abc"}, False, refusal)
+    assert not path.exists()  # not recorded without `record`
+    check_started(path, {"R4": "abc"}, True, refusal)
+    check_started(path, {"R5": "def"}, True, refusal)
+    assert json.loads(path.read_text()) == {"R4": "abc", "R5": "def"}
+    with pytest.raises(SystemExit, match="R4 changed: abc -> xyz"):
+        check_started(path, {"R4": "xyz"}, True, refusal)
+    assert json.loads(path.read_text()) == {"R4": "abc", "R5": "def"}
+
+
+def test_r4s_plan_is_the_one_its_runs_started_with():
+    """The digest recorded when R4's first run started (``chunked_started.json``) is what the study plans."""
+    sizes = regimes.SIZES["cpu"]
+    planner = Planner(sizes.scale, COMMITTED, "datasets")
+    stage = regimes.chunked_stage(sizes, "R4")
+    overrides = {a.name: [SimpleNamespace(overrides=planner.overrides(*stage.overrides(a, s))) for s in stage.seeds]
+                 for a in stage.arms}  # fmt: skip
+    recorded = json.loads((COMMITTED / "chunked_started.json").read_text())
+    assert recorded == {"R4": "519e5635200b4c2a"}
+    assert plan_digest(overrides) == recorded["R4"] == PLANNED["regimes"]["cpu"]["r4_digest"]
+
+
+def test_the_command_line_refuses_bad_input_naming_it(tmp_path):
+    with pytest.raises(SystemExit, match="no study 'nope'"):
+        cli.main(["nope", "plan"])
+    with pytest.raises(SystemExit, match="run needs a stage, one of r1, r2-screen, r2, r3, r4, r5"):
+        cli.main(["regimes", "run", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="table takes no stage"):
+        cli.main(["regimes", "table", "r4", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="--out is required with --scale ci"):
+        cli.main(["regimes", "plan", "--scale", "ci"])
+    with pytest.raises(SystemExit, match="--jobs must be >= 1"):
+        cli.main(["regimes", "run", "r3", "--jobs", "0", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="collect needs --from DIR"):
+        cli.main(["regimes", "collect", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="--seeds does not apply"):
+        cli.main(["tuning", "plan", "--seeds", "0", "--out", str(tmp_path)])
+
+
+def _names(specs) -> list[str]:
+    return [s.run_dir.name for s in specs]
+
+
+def _regimes(scale: str) -> dict:
+    sizes = regimes.SIZES[scale]
+    out = Path("benchmarks/results/regimes") if scale == "cpu" else OUT
+    planner = Planner(sizes.scale, out, "datasets")
+    source = regimes.source_spec(sizes, planner)
+    screened = json.loads((COMMITTED / "screening.json").read_text())["tasks"]
+    got = {"source": [source.run_dir.name], "screen": [planner.spec(*sizes.screen).run_dir.name]}
+    r1 = [regimes.r1_stage(sizes, source, n) for n in sizes.r1_budgets] if scale == "cpu" else []
+    got["r1"] = [name for stage in r1 for name in _names(regimes.pairs(stage, planner))]
+    got["r2"] = _names(regimes.pairs(regimes.r2_stage(sizes, screened), planner))
+    got["r3"] = _names(regimes.pairs(regimes.r3_stage(sizes), planner))
+    for label in ("R4", "R5"):
+        specs = regimes.chunked_stage(sizes, label).specs(planner)
+        got[label.lower()], got[f"{label.lower()}_digest"] = _names(seed_major(specs)), plan_digest(specs)
+    return got
+
+
+def _tuning(scale: str) -> dict:
+    sizes, planner = tuning.SIZES[scale], Planner(tuning.SIZES[scale].scale, OUT, "datasets")
+    selected = json.loads((COMMITTED / "tuning" / "selected.json").read_text())
+    if scale == "ci":
+        selected = {"cell": "tar-g0.5-paper-w3", "variant": "tar_arm"}
+    return {
+        "tune": _names(seed_major(tuning.tune_stage(sizes).specs(planner))),
+        "final": _names(seed_major(tuning.final_stage(sizes, selected).specs(planner))),
+    }
+
+
+def _baselines(scale: str) -> dict:
+    sizes = regimes.SIZES[scale]
+    planner = Planner(sizes.scale, OUT, "datasets")
+    uniform = baselines.uniform_stage(sizes).specs(planner)["uniform"]
+    return {"run": _names([uniform[0], *seed_major(baselines.stage(sizes).specs(planner))])}
+
+
+def _paper(scale: str) -> dict:
+    sizes = paper.SIZES[scale]
+    planner = Planner(sizes.scale, OUT, "datasets")
+    return {stage: _names(paper.stage_specs(sizes, planner, stage)) for stage in paper.STAGES}
+
+
+PLANS = {"regimes": _regimes, "tuning": _tuning, "baselines": _baselines, "paper": _paper}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale", ["cpu", "ci"])
+@pytest.mark.parametrize("study", sorted(PLANS))
+def test_planned_run_names_are_the_earlier_scripts(study, scale):
+    assert PLANS[study](scale) == PLANNED[study][scale]
+
+
+def test_a_scale_names_its_overrides_and_seeds():
+    scale = Scale("s", "about", ("a=1",), (0, 1))
+    planner = Planner(scale, Path("o"), "d", ("e=2",))
+    assert planner.overrides("f=3") == ("a=1", f"runs_root={Path('o') / 'runs'}", "data.root=d", "e=2", "f=3")
