@@ -336,6 +336,11 @@ def _num(text: str, digits: int, signed: bool = False) -> str:
     return f"{float(text):+.{digits}f}" if signed else f"{float(text):.{digits}f}"
 
 
+def _p(text: str) -> str:
+    """A p-value: three decimals, ``<0.001`` below that, ``-`` where there is none."""
+    return "-" if text in ("", "nan") else "<0.001" if float(text) < 0.001 else f"{float(text):.3f}"
+
+
 def regimes_block() -> str:
     """The regime study's decision table in brief, from ``decision.csv``."""
     with open(REPO / REGIMES_CSV, newline="") as f:
@@ -348,7 +353,7 @@ def regimes_block() -> str:
         ci = f"[{_num(r['d_success_ci_low'], 2, True)}, {_num(r['d_success_ci_high'], 2, True)}]"
         out.append(
             f"| {r['regime']} | {r['pairs']} | {_num(r['passes_uniform'], 0)} | {_num(r['success_uniform'], 1)} / "
-            f"{_num(r['success_tar'], 1)} | {_num(r['d_success'], 2, True)} {ci} | {_num(r['holm_p'], 3)} | "
+            f"{_num(r['success_tar'], 1)} | {_num(r['d_success'], 2, True)} {ci} | {_p(r['holm_p'])} | "
             f"{_num(r['mde_success'], 1)} |"
         )
     return "\n".join(out)

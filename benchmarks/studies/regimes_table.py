@@ -133,16 +133,64 @@ def chunked_loaded(ctx: Context, label: str, complete: bool) -> tuple[dict, list
     return loaded, missing
 
 
-def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list, dict]:
+def overall_success(run) -> float:
+    """A run's overall final success, in %."""
+    final = run.final
+    return 100 * float(final[final["level"] == "overall"]["success"].iloc[0])
+
+
+def by_device(label: str, loaded: dict) -> list[dict]:
+    """The paired differences in overall success of each TAR arm of a chunked-heads regime, averaged over the
+    seeds trained on each kind of device (``summary.json``'s ``machine.device``: ``cpu`` or the GPU's name).
+    Descriptive, no test: PLAN.md's deviation for seeds trained on a lent GPU machine."""
+    device = [(r.summary.get("machine") or {}).get("device", "unknown") for r in loaded[BASELINE]]
+    uniform = [overall_success(r) for r in loaded[BASELINE]]
+    rows = []
+    for arm in ARMS[1:]:
+        deltas = [overall_success(r) - u for r, u in zip(loaded[arm], uniform)]
+        for kind in sorted(set(device)):
+            mine = [d for d, k in zip(deltas, device) if k == kind]
+            seeds = [r.seed for r, k in zip(loaded[BASELINE], device) if k == kind]
+            uni = [u for u, k in zip(uniform, device) if k == kind]
+            rows.append(
+                {"regime": f"{label} {arm}", "device": kind, "seeds": seeds, "uniform": sum(uni) / len(uni)}
+                | {"delta": sum(mine) / len(mine), "higher": sum(d > 0 for d in mine)}
+            )
+    return rows
+
+
+def by_device_markdown(rows: Sequence[dict]) -> str:
+    """The per-device differences, when a regime's pairs were trained on more than one kind of device."""
+    regimes = {r["regime"] for r in rows}
+    if all(sum(r["regime"] == g for r in rows) < 2 for g in regimes):
+        return ""
+    lines = ["", "## Chunked heads by device (descriptive)", ""]
+    lines += ["| regime | device | seeds | uniform % | Δ success | TAR higher |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        seeds = ",".join(map(str, r["seeds"]))
+        lines.append(
+            f"| {r['regime']} | {r['device']} | {seeds} | {fmt_num(r['uniform'])} | {fmt_num(r['delta'], 2, True)} "
+            f"| {r['higher']} of {len(r['seeds'])} |"
+        )
+    lines += [
+        "",
+        "Mean paired difference in overall success over the seeds trained on each kind of device (a seed's three "
+        "runs on one machine); no test: the primary test is over all pairs above.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list, dict, list]:
     """Decision rows (one per regime and TAR arm, Holm over all of them), per-group rows, fit rows, the
-    figure's compare rows and the missing runs of the chunked-heads regimes."""
+    figure's compare rows, the missing runs and the per-device rows of the chunked-heads regimes."""
     from tar_rl.report import compare
 
-    rows, groups, fits, figure, missing = [], [], [], [], {}
+    rows, groups, fits, figure, missing, devices = [], [], [], [], {}, []
     for label, head in chunked_heads(ctx.sizes).items():
         loaded, missing[label] = chunked_loaded(ctx, label, complete)
         if not loaded[BASELINE]:
             continue
+        devices += by_device(label, loaded)
         for arm in ARMS:
             fits.append({"regime": label, "head": head, "arm": arm, **fit_summary(loaded[arm])})
             table = compare(loaded[arm], file=io.StringIO())
@@ -152,7 +200,7 @@ def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list
             rows.append(row)
             groups.append(group)
     holm_into(rows, "p_success")
-    return rows, groups, fits, figure, missing
+    return rows, groups, fits, figure, missing, devices
 
 
 def chunked_markdown(fits: Sequence[dict]) -> str:
@@ -210,11 +258,11 @@ def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -
     from tar_rl.report import plot_success_vs_neps
 
     rows, groups, figure, missing = pair_tables(ctx)
-    c_rows, c_groups, c_fits, c_figure, c_missing = chunked_tables(ctx, complete)
+    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices = chunked_tables(ctx, complete)
     rows, groups = rows + c_rows, groups + c_groups
     missing.update(c_missing)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
-    md = decision_markdown(rows, group_df, missing) + chunked_markdown(c_fits)
+    md = decision_markdown(rows, group_df, missing) + chunked_markdown(c_fits) + by_device_markdown(c_devices)
     tables = {"decision.csv": pd.DataFrame(rows)}
     if len(group_df):
         tables["groups.csv"] = group_df

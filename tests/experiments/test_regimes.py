@@ -358,3 +358,30 @@ def test_committed_tables_equal_what_the_table_command_computes(tmp_path):
     for name in ("decision.md", "decision.csv", "groups.csv"):
         if (COMMITTED / name).is_file():
             assert (tmp_path / name).read_text() == (COMMITTED / name).read_text(), name
+
+
+def _device_run(seed: int, success: float, device: str) -> SimpleNamespace:
+    final = pd.DataFrame([{"level": "overall", "success": success}, {"level": "group", "success": 0.0}])
+    return SimpleNamespace(seed=seed, final=final, summary={"machine": {"device": device}})
+
+
+def test_the_chunked_differences_per_device_are_the_means_over_each_devices_seeds():
+    from benchmarks.studies.regimes_table import by_device, by_device_markdown
+
+    kinds = ["cpu", "cpu", "NVIDIA H200"]
+    loaded = {
+        "uniform": [_device_run(s, u, k) for s, u, k in zip((0, 1, 4), (0.70, 0.80, 0.60), kinds)],
+        "tar": [_device_run(s, t, k) for s, t, k in zip((0, 1, 4), (0.75, 0.78, 0.70), kinds)],
+        "tar_gentle": [_device_run(s, t, k) for s, t, k in zip((0, 1, 4), (0.70, 0.90, 0.55), kinds)],
+    }
+    rows = {(r["regime"], r["device"]): r for r in by_device("R4", loaded)}
+    # By hand: tar on the CPU seeds (+5 - 2) / 2 = +1.5, one of two higher; on the GPU seed +10.
+    assert rows[("R4 tar", "cpu")]["delta"] == pytest.approx(1.5)
+    assert rows[("R4 tar", "cpu")]["higher"] == 1 and rows[("R4 tar", "cpu")]["seeds"] == [0, 1]
+    assert rows[("R4 tar", "cpu")]["uniform"] == pytest.approx(75.0)
+    assert rows[("R4 tar", "NVIDIA H200")]["delta"] == pytest.approx(10.0)
+    assert rows[("R4 tar_gentle", "cpu")]["delta"] == pytest.approx(5.0)
+    assert rows[("R4 tar_gentle", "NVIDIA H200")]["delta"] == pytest.approx(-5.0)
+    assert "| R4 tar | cpu | 0,1 | 75.0 | +1.50 | 1 of 2 |" in by_device_markdown(list(rows.values()))
+    one_kind = {arm: [r for r in runs if r.summary["machine"]["device"] == "cpu"] for arm, runs in loaded.items()}
+    assert by_device_markdown(by_device("R4", one_kind)) == ""  # one kind of device: no section
