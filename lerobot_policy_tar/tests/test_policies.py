@@ -93,12 +93,20 @@ def test_tar_settings_have_the_names_and_defaults_of_tar_rls_objective():
 )
 def test_tar_fields_out_of_range_are_refused_with_their_name(field, value, message):
     if message is None:
-        TARSettings(**{field: value})
+        TARSettings(**{field: value}).validate()
         with pytest.raises(ValueError, match="cap='exact' needs w_max >= 1"):
-            TARSettings(**{field: value, "cap": "exact"})
+            TARSettings(**{field: value, "cap": "exact"}).validate()
         return
     with pytest.raises(ValueError, match=message):
-        TARSettings(**{field: value})
+        TARSettings(**{field: value}).validate()
+    config = act_config(**{field: value})  # the command line's parser builds it; the dataset and the policy refuse it
+    for read in (
+        lambda: config.action_delta_indices,
+        lambda: config.observation_delta_indices,
+        config.validate_features,
+    ):
+        with pytest.raises(ValueError, match=message):
+            read()
 
 
 def test_unknown_base_policies_and_pi0_fast_are_refused_with_the_reason():
@@ -108,11 +116,13 @@ def test_unknown_base_policies_and_pi0_fast_are_refused_with_the_reason():
         tar_config_class("pi0_fast")
     from lerobot.configs.policies import PreTrainedConfig
 
-    with pytest.raises(ValueError, match="pi0_fast is not supported by TAR"):
-        PreTrainedConfig.get_choice_class("pi0_fast_tar")()
+    fast = PreTrainedConfig.get_choice_class("pi0_fast_tar")(device="cpu")
+    for read in (lambda: fast.action_delta_indices, lambda: fast.observation_delta_indices, fast.validate_features):
+        with pytest.raises(ValueError, match="pi0_fast is not supported by TAR"):
+            read()
     assert PI0_FAST_REFUSAL.startswith("pi0_fast is not supported")
     with pytest.raises(ValueError, match=r"pi05_tar supports policy\.tar\.time_axis=chunk only"):
-        PI05TARConfig(device="cpu", tar=TARSettings(time_axis="segment"))
+        PI05TARConfig(device="cpu", tar=TARSettings(time_axis="segment")).check_tar()
     assert PI05TARConfig(device="cpu").tar.time_axis == "chunk"
 
 

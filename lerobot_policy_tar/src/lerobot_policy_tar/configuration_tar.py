@@ -71,7 +71,12 @@ class TARSettings:
     time_axis: str = "segment"
     slice_len: int = 16
 
-    def __post_init__(self) -> None:
+    def validate(self) -> None:
+        """Raise a ``ValueError`` naming the first setting out of range.
+
+        Called when the dataset's delta indices are read and when the policy is built, both before training: the
+        command-line parser turns an exception raised while it builds a config into a message without the reason.
+        """
         try:
             check_tar_params(gamma=self.gamma, w_max=self.w_max, eps=self.eps, cap=self.cap)
             MixSchedule(start=self.start, ramp=self.ramp, shape=self.shape)
@@ -97,7 +102,16 @@ class TARConfigMixin:
 
     tar: TARSettings = field(default_factory=TARSettings)
 
+    def check_tar(self) -> None:
+        """Raise a ``ValueError`` naming a TAR setting this policy cannot train with."""
+        self.tar.validate()
+
+    def validate_features(self) -> None:
+        self.check_tar()
+        super().validate_features()
+
     def _segment_extra(self) -> int:
+        self.check_tar()
         return self.tar.slice_len - 1 if self.tar.time_axis == "segment" else 0
 
     @property
@@ -110,16 +124,16 @@ class TARConfigMixin:
 
     @property
     def observation_delta_indices(self) -> list | None:
-        base = self.base_observation_delta_indices
-        if not self._segment_extra():
+        extra, base = self._segment_extra(), self.base_observation_delta_indices
+        if not extra:
             return base
         first, last = (0, 0) if base is None else (min(base), max(base))
-        return list(range(first, last + self._segment_extra() + 1))
+        return list(range(first, last + extra + 1))
 
     @property
     def action_delta_indices(self) -> list:
-        base = self.base_action_delta_indices
-        return list(range(min(base), max(base) + self._segment_extra() + 1))
+        extra, base = self._segment_extra(), self.base_action_delta_indices
+        return list(range(min(base), max(base) + extra + 1))
 
 
 @PreTrainedConfig.register_subclass("act_tar")
@@ -154,8 +168,8 @@ class PI05TARConfig(TARConfigMixin, PI05Config):
 
     tar: TARSettings = field(default_factory=lambda: TARSettings(time_axis="chunk"))
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    def check_tar(self) -> None:
+        super().check_tar()
         if self.tar.time_axis == "segment" and self.tar.slice_len > 1:
             raise ValueError(
                 "pi05_tar supports policy.tar.time_axis=chunk only: pi0.5's preprocessor writes one observation "
@@ -167,9 +181,17 @@ class PI05TARConfig(TARConfigMixin, PI05Config):
 @PreTrainedConfig.register_subclass("pi0_fast_tar")
 @dataclass
 class PI0FastTARConfig(PI0Config):
-    """Refused: ``--policy.type=pi0_fast_tar`` names the reason instead of an unknown-choice error."""
+    """Refused: ``--policy.type=pi0_fast_tar`` stops with the reason when the dataset or the policy is made."""
 
-    def __post_init__(self) -> None:
+    def validate_features(self) -> None:
+        raise ValueError(PI0_FAST_REFUSAL)
+
+    @property
+    def observation_delta_indices(self) -> None:
+        raise ValueError(PI0_FAST_REFUSAL)
+
+    @property
+    def action_delta_indices(self) -> list:
         raise ValueError(PI0_FAST_REFUSAL)
 
 
