@@ -54,6 +54,52 @@ def write_dataset(root: Path, *, image: bool, lengths=EPISODE_LENGTHS, seed: int
     return root
 
 
+def write_smolvlm(folder: Path) -> Path:
+    """A tiny SmolVLM folder for ``--policy.vlm_model_name`` (SmolVLA builds its VLM from the config and reads the
+    processor and tokenizer; ``load_vlm_weights=false``): a word-level tokenizer over the task's words with
+    SmolVLM's image tokens, a 2-layer 32-wide Llama text model, a 1-layer SigLIP tower for 32-pixel images."""
+    from tokenizers import Tokenizer, models, pre_tokenizers
+    from transformers import (
+        PreTrainedTokenizerFast,
+        SmolVLMConfig,
+        SmolVLMImageProcessor,
+        SmolVLMProcessor,
+        SmolVLMVideoProcessor,
+    )
+
+    special = {
+        "fake_image_token": "<fake_token_around_image>",
+        "global_image_token": "<global-img>",
+        "image_token": "<image>",
+        "end_of_utterance_token": "<end_of_utterance>",
+    }
+    vocab = {word: i for i, word in enumerate(["<unk>", "<pad>", *special.values(), "push", "the", "cube"])}
+    words = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
+    words.pre_tokenizer = pre_tokenizers.Whitespace()
+    tokenizer = PreTrainedTokenizerFast(
+        tokenizer_object=words, unk_token="<unk>", pad_token="<pad>", extra_special_tokens=special
+    )
+    processor = SmolVLMProcessor(
+        image_processor=SmolVLMImageProcessor(),
+        tokenizer=tokenizer,
+        video_processor=SmolVLMVideoProcessor(),
+        image_seq_len=4,
+    )
+    text = {"model_type": "llama", "hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 2}
+    text |= {"num_attention_heads": 4, "num_key_value_heads": 2, "vocab_size": len(vocab), "pad_token_id": 1}
+    vision = {"hidden_size": 16, "intermediate_size": 32, "num_hidden_layers": 1, "num_attention_heads": 2}
+    vision |= {"image_size": IMAGE_SIZE, "patch_size": 8}
+    config = SmolVLMConfig(text_config=text, vision_config=vision, scale_factor=2, image_token_id=vocab["<image>"])
+    processor.save_pretrained(folder)
+    config.save_pretrained(folder)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def smolvlm(tmp_path_factory) -> Path:
+    return write_smolvlm(tmp_path_factory.mktemp("smolvlm"))
+
+
 @pytest.fixture(scope="session")
 def state_dataset(tmp_path_factory) -> Path:
     return write_dataset(tmp_path_factory.mktemp("data") / "state", image=False)

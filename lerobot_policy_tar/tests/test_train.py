@@ -27,6 +27,10 @@ TINY = {
         "--policy.use_group_norm=true",
         "--policy.spatial_softmax_num_keypoints=8", "--policy.tar.slice_len=3",
     ],
+    "smolvla_tar": [
+        "--policy.load_vlm_weights=false", "--policy.num_vlm_layers=2", "--policy.resize_imgs_with_padding=[32,32]",
+        "--policy.chunk_size=4", "--policy.n_action_steps=4", "--policy.tar.slice_len=2",
+    ],
 }  # fmt: skip
 
 
@@ -68,6 +72,21 @@ def test_lerobot_train_runs_saves_and_the_checkpoint_acts(policy_type, data, req
     checkpoint = tmp_path / "out" / "checkpoints" / "last" / "pretrained_model"
     policy_class = {"act_tar": ACTTARPolicy, "diffusion_tar": DiffusionTARPolicy}[policy_type]
     action = load_and_act(checkpoint, dataset, policy_class)
+    assert action.shape == (1, ACTION_DIM) and torch.isfinite(action).all()
+
+
+def test_lerobot_train_runs_smolvla_tar_on_a_tiny_local_smolvlm_and_the_checkpoint_acts(
+    image_dataset, smolvlm, tmp_path
+):
+    from lerobot_policy_tar.modeling_tar import SmolVLATARPolicy
+
+    extra = [*TINY["smolvla_tar"], f"--policy.vlm_model_name={smolvlm}"]
+    done = lerobot_train(image_dataset, tmp_path / "out", "smolvla_tar", *extra)
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert f"step:{STEPS} " in done.stderr and "tar_mix:1.000" in done.stderr, done.stderr[-4000:]
+    action = load_and_act(
+        tmp_path / "out" / "checkpoints" / "last" / "pretrained_model", image_dataset, SmolVLATARPolicy
+    )
     assert action.shape == (1, ACTION_DIM) and torch.isfinite(action).all()
 
 
