@@ -129,6 +129,7 @@ def test_unknown_base_policies_and_pi0_fast_are_refused_with_the_reason():
 def test_segment_mode_extends_the_base_delta_indices_by_the_segment():
     act = act_config(slice_len=3)
     assert act.observation_delta_indices == [0, 1, 2]
+    assert act_config(slice_len=1).observation_delta_indices == [0]  # a time axis even for one step
     assert act.action_delta_indices == list(range(CHUNK + 2))
     assert act_config(time_axis="chunk").observation_delta_indices is None
     diffusion = diffusion_config(slice_len=3)  # n_obs_steps 2, horizon 8: deltas -1..0 and -1..6
@@ -174,20 +175,21 @@ def test_with_the_schedule_off_the_loss_is_the_base_policys_own(make_config, tar
         assert info["tar_mix"] == 0.0
 
 
-def test_each_step_of_a_segment_is_the_base_policys_loss_on_that_step():
+@pytest.mark.parametrize("slice_len", [1, 3])
+def test_each_step_of_a_segment_is_the_base_policys_loss_on_that_step(slice_len):
     """ACT without its VAE and dropout is deterministic: step ``t``'s loss in a segment is ACT's own loss on the
     item of observation ``t`` and chunk ``t..t+H-1``, built here directly from the segment's tensors."""
-    config = act_config(slice_len=3, start=10)
+    config = act_config(slice_len=slice_len, start=10)
     config.use_vae, config.dropout = False, 0.0
     torch.manual_seed(0)
     policy = ACTTARPolicy(config)
     base = ACTPolicy(config)
     base.load_state_dict({k: v for k, v in policy.state_dict().items() if k != "tar_step"})
-    batch = _batch(config, 2, pad_from=5)  # steps 0..2 read actions t..t+3 of 6: step 2's last entry is padding
+    batch = _batch(config, 2, pad_from=5)  # L=3: steps 0..2 read actions t..t+3 of 6; step 2's last one is padding
     ours, _ = policy.forward(batch, reduction="none")
     for i in range(2):
         steps = []
-        for t in range(3):
+        for t in range(slice_len):
             item = {key: batch[key][i : i + 1, t] for key in FEATURES}
             item["action"] = batch["action"][i : i + 1, t : t + CHUNK]
             item["action_is_pad"] = batch["action_is_pad"][i : i + 1, t : t + CHUNK]

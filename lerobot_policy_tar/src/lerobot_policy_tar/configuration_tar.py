@@ -125,7 +125,7 @@ class TARConfigMixin:
     @property
     def observation_delta_indices(self) -> list | None:
         extra, base = self._segment_extra(), self.base_observation_delta_indices
-        if not extra:
+        if self.tar.time_axis != "segment":
             return base
         first, last = (0, 0) if base is None else (min(base), max(base))
         return list(range(first, last + extra + 1))

@@ -17,7 +17,7 @@ from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 from lerobot.policies.pi0.modeling_pi0 import PI0Policy
 from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
-from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
+from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE
 from torch import Tensor
 
 from .configuration_tar import ACTTARConfig, DiffusionTARConfig, PI0TARConfig, PI05TARConfig, SmolVLATARConfig
@@ -146,7 +146,7 @@ class SmolVLATARPolicy(TARPolicyMixin, SmolVLAPolicy):
     def element_losses(self, batch):
         batch = dict(batch)
         if self.config.adapt_to_pi_aloha:
-            batch["observation.state"] = self._pi_aloha_decode_state(batch["observation.state"])
+            batch[OBS_STATE] = self._pi_aloha_decode_state(batch[OBS_STATE])
             batch[ACTION] = self._pi_aloha_encode_actions_inv(batch[ACTION])
         images, img_masks = self.prepare_images(batch)
         state = self.prepare_state(batch)
