@@ -1,0 +1,191 @@
+"""The policies: each LeRobot policy whose training forward reduces over time with TAR.
+
+A TAR policy is its base policy (same network, processors, inference and checkpoints) with one training forward,
+:meth:`TARPolicyMixin.forward`, shared by all five. What differs per base policy is only where its per-element loss
+comes from, :meth:`element_losses`: the base's own loss up to the point where it reduces (LeRobot's
+``policy.forward`` returns a scalar).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from lerobot.policies.act.modeling_act import ACTPolicy
+from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+from lerobot.policies.pi0.modeling_pi0 import PI0Policy
+from lerobot.policies.pi05.modeling_pi05 import PI05Policy
+from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE
+from torch import Tensor
+
+from .configuration_tar import ACTTARConfig, DiffusionTARConfig, PI0TARConfig, PI05TARConfig, SmolVLATARConfig
+from .time_axis import ElementLosses, fold_segments, reduce_over_time
+
+__all__ = ["ACTTARPolicy", "DiffusionTARPolicy", "PI0TARPolicy", "PI05TARPolicy", "SmolVLATARPolicy", "TARPolicyMixin"]
+
+REDUCTIONS = ("mean", "none")
+
+
+def check_segment_fits(config, dataset_meta) -> None:
+    """Refuse a segment longer than every episode of the dataset (every segment would be padded)."""
+    if config.tar.time_axis != "segment" or dataset_meta is None or dataset_meta.episodes is None:
+        return
+    longest = max(dataset_meta.episodes["length"])
+    if config.tar.slice_len > longest:
+        raise ValueError(
+            f"policy.tar.slice_len={config.tar.slice_len} is longer than every episode of the dataset (the longest "
+            f"has {longest} frames): set it to at most {longest}."
+        )
+
+
+def _entry_valid(batch: dict[str, Any], loss: Tensor) -> Tensor:
+    """``[N, H]`` bool, ``True`` on the real chunk entries (``~action_is_pad``; all real without it)."""
+    is_pad = batch.get("action_is_pad")
+    return torch.ones(loss.shape[:2], dtype=torch.bool, device=loss.device) if is_pad is None else ~is_pad
+
+
+class TARPolicyMixin:
+    """The training forward of every TAR policy (the first base of each; the second is the LeRobot policy).
+
+    The policy counts its training forwards in the buffer ``tar_step`` (saved with the weights, so a resumed run
+    continues TAR's schedule) and reads ``policy.tar`` (:class:`~lerobot_policy_tar.configuration_tar.TARSettings`).
+    """
+
+    def __init__(self, config, **kwargs):
+        check_segment_fits(config, kwargs.get("dataset_meta"))
+        super().__init__(config, **kwargs)
+        self.register_buffer("tar_step", torch.zeros((), dtype=torch.long))
+
+    def element_losses(self, batch: dict[str, Any]) -> ElementLosses:
+        """The base policy's per-element training loss on a batch of its own shapes."""
+        raise NotImplementedError
+
+    def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
+        """The training loss: the mean over items (``reduction="mean"``) or one per item, ``[B]`` (``"none"``)."""
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"reduction must be one of {REDUCTIONS}, got {reduction!r}.")
+        tar, config = self.config.tar, self.config
+        segments = None
+        if tar.time_axis == "segment":
+            base_obs = config.base_observation_delta_indices
+            base_action = config.base_action_delta_indices
+            batch, segments = fold_segments(
+                batch,
+                slice_len=tar.slice_len,
+                observation_keys=list(config.input_features),
+                observation_window=None if base_obs is None else len(base_obs),
+                action_window=len(base_action),
+                action_offset=-min(base_action),
+            )
+        mix = tar.schedule(self.tar_step)
+        out = reduce_over_time(
+            self.element_losses(batch), segments=segments, gamma=tar.gamma, w_max=tar.w_max, eps=tar.eps,
+            cap=tar.cap, mix=mix,
+        )  # fmt: skip
+        if self.training:
+            self.tar_step += 1
+        loss = out.per_item if reduction == "none" else out.per_item.mean()
+        info = {"loss": out.per_item.mean().item(), "tar_mix": float(mix), "tar_max_weight": out.weights.max().item()}
+        return loss, info
+
+
+class ACTTARPolicy(TARPolicyMixin, ACTPolicy):
+    """ACT with TAR: the L1 loss per chunk entry and action dim; the VAE's KL term (times ``kl_weight``) per item."""
+
+    config_class = ACTTARConfig
+    name = "act_tar"
+
+    def element_losses(self, batch):
+        if self.config.image_features:
+            batch = dict(batch)
+            batch[OBS_IMAGES] = [batch[key] for key in self.config.image_features]
+        actions_hat, (mu, log_sigma_x2) = self.model(batch)
+        loss = F.l1_loss(actions_hat, batch[ACTION], reduction="none")
+        kl = None
+        if self.config.use_vae and log_sigma_x2 is not None:
+            kl = (-0.5 * (1 + log_sigma_x2 - mu.pow(2) - log_sigma_x2.exp())).sum(-1) * self.config.kl_weight
+        return ElementLosses(loss, _entry_valid(batch, loss), kl)
+
+
+class DiffusionTARPolicy(TARPolicyMixin, DiffusionPolicy):
+    """Diffusion Policy with TAR: the denoising MSE per horizon entry and action dim (``DiffusionModel.compute_loss``
+    before its mean), padding always masked."""
+
+    config_class = DiffusionTARConfig
+    name = "diffusion_tar"
+
+    def element_losses(self, batch):
+        if self.config.image_features:
+            batch = dict(batch)
+            for key in self.config.image_features:
+                if self.config.n_obs_steps == 1 and batch[key].ndim == 4:
+                    batch[key] = batch[key].unsqueeze(1)
+            batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
+        model, trajectory = self.diffusion, batch[ACTION]
+        global_cond = model._prepare_global_conditioning(batch)
+        eps = torch.randn(trajectory.shape, device=trajectory.device)
+        steps = model.noise_scheduler.config.num_train_timesteps
+        timesteps = torch.randint(low=0, high=steps, size=(trajectory.shape[0],), device=trajectory.device).long()
+        noisy = model.noise_scheduler.add_noise(trajectory, eps, timesteps)
+        pred = model.unet(noisy, timesteps, global_cond=global_cond)
+        if self.config.prediction_type not in ("epsilon", "sample"):
+            raise ValueError(f"Unsupported prediction type {self.config.prediction_type}")
+        target = eps if self.config.prediction_type == "epsilon" else trajectory
+        loss = F.mse_loss(pred, target, reduction="none")
+        return ElementLosses(loss, _entry_valid(batch, loss))
+
+
+class SmolVLATARPolicy(TARPolicyMixin, SmolVLAPolicy):
+    """SmolVLA with TAR: the flow-matching MSE per chunk entry and (real) action dim."""
+
+    config_class = SmolVLATARConfig
+    name = "smolvla_tar"
+
+    def element_losses(self, batch):
+        batch = dict(batch)
+        if self.config.adapt_to_pi_aloha:
+            batch[OBS_STATE] = self._pi_aloha_decode_state(batch[OBS_STATE])
+            batch[ACTION] = self._pi_aloha_encode_actions_inv(batch[ACTION])
+        images, img_masks = self.prepare_images(batch)
+        state = self.prepare_state(batch)
+        tokens, masks = batch[OBS_LANGUAGE_TOKENS], batch[OBS_LANGUAGE_ATTENTION_MASK]
+        losses = self.model.forward(images, img_masks, tokens, masks, state, self.prepare_action(batch), None, None)
+        loss = losses[:, :, : self.config.action_feature.shape[0]]
+        return ElementLosses(loss, _entry_valid(batch, loss))
+
+
+class PI0TARPolicy(TARPolicyMixin, PI0Policy):
+    """pi0 with TAR: the flow-matching MSE per chunk entry and (real) action dim; padded entries are masked."""
+
+    config_class = PI0TARConfig
+    name = "pi0_tar"
+
+    def element_losses(self, batch):
+        images, img_masks = self._preprocess_images(batch)
+        tokens, masks = batch[OBS_LANGUAGE_TOKENS], batch[OBS_LANGUAGE_ATTENTION_MASK]
+        state, actions = self.prepare_state(batch), self.prepare_action(batch)
+        noise = self.model.sample_noise(actions.shape, actions.device)
+        time = self.model.sample_time(actions.shape[0], actions.device)
+        losses = self.model.forward(images, img_masks, tokens, masks, state, actions, noise, time)
+        loss = losses[:, :, : self.config.output_features[ACTION].shape[0]]
+        return ElementLosses(loss, _entry_valid(batch, loss))
+
+
+class PI05TARPolicy(TARPolicyMixin, PI05Policy):
+    """pi0.5 with TAR (``time_axis=chunk``): the flow-matching MSE per chunk entry and (real) action dim; padded
+    entries are masked."""
+
+    config_class = PI05TARConfig
+    name = "pi05_tar"
+
+    def element_losses(self, batch):
+        images, img_masks = self._preprocess_images(batch)
+        tokens, masks = batch[OBS_LANGUAGE_TOKENS], batch[OBS_LANGUAGE_ATTENTION_MASK]
+        actions = self.prepare_action(batch)
+        noise = self.model.sample_noise(actions.shape, actions.device)
+        time = self.model.sample_time(actions.shape[0], actions.device)
+        losses = self.model.forward(images, img_masks, tokens, masks, actions, noise, time)
+        loss = losses[:, :, : self.config.output_features[ACTION].shape[0]]
+        return ElementLosses(loss, _entry_valid(batch, loss))

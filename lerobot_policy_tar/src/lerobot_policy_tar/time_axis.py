@@ -1,0 +1,166 @@
+"""The time axis TAR weights, and the reduction over it: one code path for every base policy.
+
+A base policy's training loss is a per-element loss ``[N, H, A]`` over its action chunk (``H`` entries of ``A``
+action dims) with the chunk's validity ``[N, H]`` (``True`` = a real entry, ``False`` = padding past the episode's
+end), plus, for ACT, a per-item regulariser ``[N]`` (the VAE's KL term). From it:
+
+* ``segment`` mode (the paper): a dataset item holds ``L`` consecutive observation steps, each with its own chunk;
+  :func:`fold_segments` turns a batch of ``B`` items into ``N = B * L`` items of the base policy's own shapes, and a
+  step's loss is the mean of its element losses over its valid chunk entries and the action dims. TAR weights the
+  ``L`` steps of each item (a step is real while its current action is inside the episode).
+* ``chunk`` mode: ``N = B`` and TAR weights the ``H`` entries of each chunk (each the mean over the action dims),
+  a reinterpretation of the paper's time axis that costs nothing extra.
+
+The item's loss is the TAR-weighted mean over its valid steps plus the mean of the regulariser over them: the
+regulariser is not an imitation loss and is not reweighted. Items come back as ``[B]``, so LeRobot's own sample
+weights (``reduction="none"``) multiply them as they multiply any policy's per-sample loss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .tar_source import tar_weights
+
+__all__ = ["ElementLosses", "TARReduction", "fold_segments", "reduce_over_time"]
+
+
+@dataclass(frozen=True)
+class ElementLosses:
+    """A base policy's unreduced training loss.
+
+    Attributes:
+        loss: ``[N, H, A]`` per-element loss (action chunk entries x action dims).
+        valid: ``[N, H]`` bool, ``True`` on real chunk entries, ``False`` on padding.
+        extra: ``[N]`` per-item regulariser added unweighted (ACT's weighted KL term), or ``None``.
+    """
+
+    loss: Tensor
+    valid: Tensor
+    extra: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class TARReduction:
+    """What :func:`reduce_over_time` returns.
+
+    Attributes:
+        per_item: ``[B]`` loss per dataset item (a segment or a chunk).
+        losses: ``[B, T]`` the per-step losses TAR weighted (detached).
+        valid: ``[B, T]`` bool, ``True`` on real steps.
+        weights: ``[B, T]`` TAR's weights (``0`` on padding, mean ``1`` over the valid steps of an item).
+    """
+
+    per_item: Tensor
+    losses: Tensor
+    valid: Tensor
+    weights: Tensor
+
+
+def _windows(x: Tensor, slice_len: int, size: int, keep_axis: bool) -> Tensor:
+    """``[B, slice_len + size - 1, ...]`` -> ``[B * slice_len, size, ...]`` (step ``t`` reads ``x[:, t : t + size]``);
+    without ``keep_axis`` (``size == 1``) the window axis is dropped: ``[B * slice_len, ...]``."""
+    stacked = torch.stack([x[:, t : t + size] for t in range(slice_len)], dim=1)
+    folded = stacked.reshape(x.shape[0] * slice_len, size, *x.shape[2:])
+    return folded if keep_axis else folded.squeeze(1)
+
+
+def fold_segments(
+    batch: dict[str, Any],
+    *,
+    slice_len: int,
+    observation_keys: list[str],
+    observation_window: int | None,
+    action_window: int,
+    action_offset: int,
+) -> tuple[dict[str, Any], Tensor]:
+    """Fold a batch of segments into the base policy's batch of single steps.
+
+    Args:
+        batch: a preprocessed batch of ``B`` items; the keys in ``observation_keys`` (and their ``*_is_pad``) hold
+            ``[B, slice_len + observation_window - 1, ...]``, ``action``/``action_is_pad``
+            ``[B, slice_len + action_window - 1, ...]``; every other tensor with ``B`` rows and every list of ``B``
+            entries (the task strings) is per item and repeated for each step.
+
+    Keyword Args:
+        slice_len: ``L``, the steps of a segment.
+        observation_keys: the observation features with a time axis.
+        observation_window: the observation steps the base policy reads per step (its ``n_obs_steps``), or ``None``
+            for a base policy that reads one step without a time axis (ACT, pi0, pi0.5).
+        action_window: ``H``, the base policy's chunk length.
+        action_offset: the index of step ``t``'s current action in its chunk window (``-min(action deltas)``).
+
+    Returns:
+        The folded batch (``B * L`` items, step-major within an item) and ``valid`` ``[B, L]``: ``True`` where the
+        step's current action is inside the episode.
+    """
+    action = batch["action"]
+    size, length = action.shape[0], action.shape[1]
+    if length != slice_len + action_window - 1:
+        raise ValueError(
+            f"a segment batch needs {slice_len + action_window - 1} actions per item (slice_len {slice_len}, chunk "
+            f"{action_window}), got {length}: the dataset's delta timestamps are not this policy's."
+        )
+    obs_size = observation_window or 1
+    folded: dict[str, Any] = {}
+    for key, value in batch.items():
+        base_key = key.removesuffix("_is_pad")
+        if base_key in observation_keys:
+            folded[key] = _windows(value, slice_len, obs_size, keep_axis=observation_window is not None)
+        elif base_key == "action":
+            folded[key] = _windows(value, slice_len, action_window, keep_axis=True)
+        elif isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == size:
+            folded[key] = value.repeat_interleave(slice_len, dim=0)
+        elif isinstance(value, list) and len(value) == size:
+            folded[key] = [entry for entry in value for _ in range(slice_len)]
+        else:
+            folded[key] = value
+    is_pad = batch.get("action_is_pad")
+    if is_pad is None:
+        valid = torch.ones(size, slice_len, dtype=torch.bool, device=action.device)
+    else:
+        valid = ~is_pad[:, action_offset : action_offset + slice_len]
+    return folded, valid
+
+
+def reduce_over_time(
+    element: ElementLosses,
+    *,
+    segments: Tensor | None,
+    gamma: float,
+    w_max: float,
+    eps: float,
+    cap: str,
+    mix: float | Tensor,
+) -> TARReduction:
+    """TAR over the time axis: ``[B]`` losses from a base policy's element losses.
+
+    Args:
+        element: the base policy's element losses over ``N`` items.
+
+    Keyword Args:
+        segments: ``valid`` ``[B, L]`` from :func:`fold_segments` (``segment`` mode; ``N = B * L``) or ``None``
+            (``chunk`` mode: the time axis is the chunk, ``N = B``).
+        gamma, w_max, eps, cap, mix: TAR's settings and the schedule's mixing weight (``tar_weights``).
+    """
+    valid_entry = element.valid
+    entry = element.loss.mean(-1)  # [N, H]: mean over the action dims
+    entry = torch.where(valid_entry, entry, torch.zeros((), dtype=entry.dtype, device=entry.device))
+    if segments is None:
+        losses, valid = entry, valid_entry
+    else:
+        count = valid_entry.sum(-1)
+        step = entry.sum(-1) / count.clamp_min(1)  # [N]: mean over the step's valid chunk entries
+        losses = step.reshape(segments.shape)
+        valid = segments & (count > 0).reshape(segments.shape)
+    weights = tar_weights(losses, valid, gamma=gamma, w_max=w_max, eps=eps, cap=cap, mix=mix)
+    n_valid = valid.sum(-1).clamp_min(1)
+    per_item = (weights * losses).sum(-1) / n_valid
+    if element.extra is not None:
+        extra = element.extra if segments is None else element.extra.reshape(segments.shape)
+        per_item = per_item + (extra if segments is None else (extra * valid).sum(-1) / n_valid)
+    return TARReduction(per_item=per_item, losses=losses.detach(), valid=valid, weights=weights)

@@ -1,0 +1,110 @@
+"""Tiny LeRobot datasets and configs written in the tests: nothing comes from a hub (the tests run offline)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# Offline before LeRobot or huggingface_hub is imported: a test never reaches a hub.
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
+os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+os.environ.setdefault("WANDB_MODE", "disabled")
+
+STATE_DIM, ENV_DIM, ACTION_DIM, IMAGE_SIZE = 4, 2, 3, 32
+#: Frames per episode of the tiny datasets.
+EPISODE_LENGTHS = (12, 9, 15)
+
+
+def write_dataset(root: Path, *, image: bool, lengths=EPISODE_LENGTHS, seed: int = 0) -> Path:
+    """A LeRobotDataset of ``len(lengths)`` episodes of a smooth random walk: state and action, and an environment
+    state or (``image``) an image ``observation.images.cam`` of ``IMAGE_SIZE`` pixels; task "push the cube"."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": None},
+        "action": {"dtype": "float32", "shape": (ACTION_DIM,), "names": None},
+    }
+    if not image:  # ACT and Diffusion read an image or an environment state besides the robot's state
+        features["observation.environment_state"] = {"dtype": "float32", "shape": (ENV_DIM,), "names": None}
+    else:
+        features["observation.images.cam"] = {
+            "dtype": "image",
+            "shape": (IMAGE_SIZE, IMAGE_SIZE, 3),
+            "names": ["height", "width", "channels"],
+        }
+    dataset = LeRobotDataset.create(repo_id="local/tar_tiny", fps=10, features=features, root=root, use_videos=False)
+    rng = np.random.default_rng(seed)
+    for length in lengths:
+        state = rng.normal(size=STATE_DIM).astype(np.float32)
+        for _ in range(length):
+            action = rng.normal(size=ACTION_DIM).astype(np.float32)
+            frame = {"observation.state": state.copy(), "action": action, "task": "push the cube"}
+            if not image:
+                frame["observation.environment_state"] = state[:ENV_DIM] ** 2
+            else:
+                frame["observation.images.cam"] = rng.integers(0, 256, (IMAGE_SIZE, IMAGE_SIZE, 3), dtype=np.uint8)
+            dataset.add_frame(frame)
+            state = state + 0.1 * np.pad(action, (0, STATE_DIM - ACTION_DIM))
+        dataset.save_episode()
+    dataset.finalize()
+    return root
+
+
+def write_smolvlm(folder: Path) -> Path:
+    """A tiny SmolVLM folder for ``--policy.vlm_model_name`` (SmolVLA builds its VLM from the config and reads the
+    processor and tokenizer; ``load_vlm_weights=false``): a word-level tokenizer over the task's words with
+    SmolVLM's image tokens, a 2-layer 32-wide Llama text model, a 1-layer SigLIP tower for 32-pixel images."""
+    from tokenizers import Tokenizer, models, pre_tokenizers
+    from transformers import (
+        PreTrainedTokenizerFast,
+        SmolVLMConfig,
+        SmolVLMImageProcessor,
+        SmolVLMProcessor,
+        SmolVLMVideoProcessor,
+    )
+
+    special = {
+        "fake_image_token": "<fake_token_around_image>",
+        "global_image_token": "<global-img>",
+        "image_token": "<image>",
+        "end_of_utterance_token": "<end_of_utterance>",
+    }
+    vocab = {word: i for i, word in enumerate(["<unk>", "<pad>", *special.values(), "push", "the", "cube"])}
+    words = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
+    words.pre_tokenizer = pre_tokenizers.Whitespace()
+    tokenizer = PreTrainedTokenizerFast(
+        tokenizer_object=words, unk_token="<unk>", pad_token="<pad>", extra_special_tokens=special
+    )
+    processor = SmolVLMProcessor(
+        image_processor=SmolVLMImageProcessor(),
+        tokenizer=tokenizer,
+        video_processor=SmolVLMVideoProcessor(),
+        image_seq_len=4,
+    )
+    text = {"model_type": "llama", "hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 2}
+    text |= {"num_attention_heads": 4, "num_key_value_heads": 2, "vocab_size": len(vocab), "pad_token_id": 1}
+    vision = {"hidden_size": 16, "intermediate_size": 32, "num_hidden_layers": 1, "num_attention_heads": 2}
+    vision |= {"image_size": IMAGE_SIZE, "patch_size": 8}
+    config = SmolVLMConfig(text_config=text, vision_config=vision, scale_factor=2, image_token_id=vocab["<image>"])
+    processor.save_pretrained(folder)
+    config.save_pretrained(folder)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def smolvlm(tmp_path_factory) -> Path:
+    return write_smolvlm(tmp_path_factory.mktemp("smolvlm"))
+
+
+@pytest.fixture(scope="session")
+def state_dataset(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("data") / "state", image=False)
+
+
+@pytest.fixture(scope="session")
+def image_dataset(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("data") / "image", image=True)

@@ -1,0 +1,111 @@
+"""The real client: ``lerobot-train --policy.type=<base>_tar`` runs offline for a few steps on a LeRobotDataset written
+here, saves a checkpoint, and the checkpoint loads back with ``from_pretrained`` and acts; bad settings stop it
+before training with a message naming them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import ACTION_DIM
+
+STEPS = 3
+LEROBOT_TRAIN = Path(sys.executable).with_name("lerobot-train")
+TINY = {
+    "act_tar": [
+        "--policy.chunk_size=4", "--policy.n_action_steps=4", "--policy.dim_model=32", "--policy.dim_feedforward=64",
+        "--policy.n_heads=2", "--policy.n_encoder_layers=1", "--policy.n_decoder_layers=1", "--policy.latent_dim=8",
+        "--policy.pretrained_backbone_weights=null", "--policy.tar.slice_len=3",
+    ],
+    "diffusion_tar": [
+        "--policy.n_obs_steps=2", "--policy.horizon=8", "--policy.n_action_steps=4", "--policy.down_dims=[16,32]",
+        "--policy.diffusion_step_embed_dim=16", "--policy.n_groups=4", "--policy.kernel_size=3",
+        "--policy.num_train_timesteps=10", "--policy.pretrained_backbone_weights=null", "--policy.crop_shape=[28,28]",
+        "--policy.use_group_norm=true",
+        "--policy.spatial_softmax_num_keypoints=8", "--policy.tar.slice_len=3",
+    ],
+    "smolvla_tar": [
+        "--policy.load_vlm_weights=false", "--policy.num_vlm_layers=2", "--policy.resize_imgs_with_padding=[32,32]",
+        "--policy.chunk_size=4", "--policy.n_action_steps=4", "--policy.tar.slice_len=2",
+    ],
+}  # fmt: skip
+
+
+def lerobot_train(dataset: Path, out: Path, policy_type: str, *extra: str) -> subprocess.CompletedProcess:
+    command = [
+        str(LEROBOT_TRAIN), "--dataset.repo_id=local/tar_tiny", f"--dataset.root={dataset}",
+        f"--policy.type={policy_type}", "--policy.device=cpu", "--policy.push_to_hub=false", "--batch_size=4",
+        f"--steps={STEPS}", f"--save_freq={STEPS}", "--log_freq=1", "--num_workers=0", f"--output_dir={out}",
+        "--wandb.enable=false", *extra,
+    ]  # fmt: skip
+    return subprocess.run(command, capture_output=True, text=True, timeout=900)
+
+
+def load_and_act(checkpoint: Path, dataset: Path, policy_class) -> torch.Tensor:
+    """The saved policy and processors from disk; one action for the dataset's first frame."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.factory import make_pre_post_processors
+
+    policy = policy_class.from_pretrained(checkpoint)
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(checkpoint))
+    frame = LeRobotDataset("local/tar_tiny", root=dataset)[0]
+    observation = {k: v for k, v in frame.items() if k.startswith("observation.")} | {"task": frame["task"]}
+    policy.reset()
+    with torch.no_grad():
+        action = postprocessor(policy.select_action(preprocessor(observation)))
+    assert int(policy.tar_step) == STEPS  # the schedule's count is saved with the weights
+    return action
+
+
+@pytest.mark.parametrize("policy_type", ["act_tar", "diffusion_tar"])
+@pytest.mark.parametrize("data", ["state", "image"])
+def test_lerobot_train_runs_saves_and_the_checkpoint_acts(policy_type, data, request, tmp_path):
+    from lerobot_policy_tar.modeling_tar import ACTTARPolicy, DiffusionTARPolicy
+
+    dataset = request.getfixturevalue(f"{data}_dataset")
+    done = lerobot_train(dataset, tmp_path / "out", policy_type, *TINY[policy_type])
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert f"step:{STEPS} " in done.stderr and "tar_mix:1.000" in done.stderr, done.stderr[-4000:]
+    checkpoint = tmp_path / "out" / "checkpoints" / "last" / "pretrained_model"
+    policy_class = {"act_tar": ACTTARPolicy, "diffusion_tar": DiffusionTARPolicy}[policy_type]
+    action = load_and_act(checkpoint, dataset, policy_class)
+    assert action.shape == (1, ACTION_DIM) and torch.isfinite(action).all()
+
+
+def test_lerobot_train_runs_smolvla_tar_on_a_tiny_local_smolvlm_and_the_checkpoint_acts(
+    image_dataset, smolvlm, tmp_path
+):
+    from lerobot_policy_tar.modeling_tar import SmolVLATARPolicy
+
+    extra = [*TINY["smolvla_tar"], f"--policy.vlm_model_name={smolvlm}"]
+    done = lerobot_train(image_dataset, tmp_path / "out", "smolvla_tar", *extra)
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert f"step:{STEPS} " in done.stderr and "tar_mix:1.000" in done.stderr, done.stderr[-4000:]
+    action = load_and_act(
+        tmp_path / "out" / "checkpoints" / "last" / "pretrained_model", image_dataset, SmolVLATARPolicy
+    )
+    assert action.shape == (1, ACTION_DIM) and torch.isfinite(action).all()
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--policy.tar.gamma=0"], "policy.tar: gamma must be a finite number > 0"),
+        (["--policy.tar.slice_len=99"], "policy.tar.slice_len=99 is longer than every episode of the dataset"),
+    ],
+    ids=["gamma", "slice_len"],
+)
+def test_lerobot_train_refuses_bad_tar_settings_before_training(extra, message, state_dataset, tmp_path):
+    done = lerobot_train(state_dataset, tmp_path / "out", "act_tar", *TINY["act_tar"], *extra)
+    assert done.returncode != 0
+    assert message in done.stderr + done.stdout, done.stderr[-4000:]
+    assert "Start offline training" not in done.stderr
+
+
+def test_lerobot_train_refuses_pi0_fast_with_the_reason(state_dataset, tmp_path):
+    done = lerobot_train(state_dataset, tmp_path / "out", "pi0_fast_tar")
+    assert done.returncode != 0
+    assert "pi0_fast is not supported by TAR" in done.stderr + done.stdout, done.stderr[-4000:]
