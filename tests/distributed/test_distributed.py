@@ -21,6 +21,7 @@ import pytest
 import torch
 import torch.distributed as torch_dist
 import torch.multiprocessing as mp
+from objective_helpers import tar_loss
 from paths import REPO
 from recipe_helpers import compose_config
 from tensordict import TensorDict
@@ -44,7 +45,7 @@ def _objective(weighting: str = "tar", seed: int = 0) -> TARLoss:
     net = torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.Tanh(), torch.nn.Linear(16, 2))
     actor = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
     kwargs = {"dro_eta": 1.0, "dro_bins": 3}  # read by dro_time only
-    return TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), weighting, gamma=1.0, w_max=3.0, **kwargs)
+    return tar_loss(BCLoss(actor, loss_function="mse", reduction="none"), weighting, gamma=1.0, w_max=3.0, **kwargs)
 
 
 def _batch() -> TensorDict:
