@@ -6,9 +6,8 @@ The inner objective (any ``LossModule`` built with ``reduction="none"``, e.g. to
 weights the steps of each segment with a registered weighting (``"tar"`` by default, the
 uniform mean, the paper's controls and the baselines from the literature by name) and returns
 the segment loss of Eq. 2, averaged over the segments that have at least one valid step. A
-stateful weighting (``dro_time``) keeps its state in a module of ``TARLoss``, updated on each
-training step
-(:class:`WeightingState`); the perturbation controls wrap the inner loss in
+stateful weighting (``dro_time``) keeps its state in a module of ``TARLoss`` (:class:`WeightingState`),
+updated on each training step; the perturbation controls wrap the inner loss in
 :class:`~tar_rl.objectives.supervision.PerturbedTarget`.
 """
 
@@ -25,7 +24,7 @@ from torchrl.objectives import LossModule
 
 from . import inner as inner_output
 from .elementwise import element_mean
-from .inner import segment_mean
+from .inner import segment_mean  # exported here too: Eq. 2's reduction is part of TARLoss's interface
 from .schedule import MixSchedule
 from .supervision import PerturbedTarget
 from .weighting import Weighting, get_weighting
@@ -284,9 +283,10 @@ class TARLoss(LossModule):
         inspection, like :meth:`step_losses`."""
         clean = self.inner.inner if isinstance(self.inner, PerturbedTarget) else self.inner
         out = clean(tensordict)
-        key, event_key = inner_output.loss_entry(out, self.loss_key), self.tensor_keys.event_valid
-        steps = inner_output.step_losses(out, key, tensordict, event_key)
-        return steps, inner_output.dim_losses(out, key, tensordict, event_key)
+        key = inner_output.loss_entry(out, self.loss_key)
+        return self._step_losses(out, key, tensordict), inner_output.dim_losses(
+            out, key, tensordict, self.tensor_keys.event_valid
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Weighted segment loss of Eq. 2 on a ``[B, L]`` TensorDict; does not modify it."""
@@ -329,7 +329,7 @@ class TARLoss(LossModule):
         mean of its valid elements' weights."""
         event_key, generator = self.tensor_keys.event_valid, self._generator if self.weighting.stochastic else None
         if not self.weighting.elementwise:
-            losses = inner_output.step_losses(out, key, tensordict, event_key)
+            losses = self._step_losses(out, key, tensordict)
             scored = inner_output.scored(losses.detach(), valid, self.nonfinite)
             result = self._weight_function(losses.device)(scored, valid, self.params, mix, generator, **inputs)
             weights = self.weighting_state.weights(result, training_step)
@@ -343,6 +343,10 @@ class TARLoss(LossModule):
         weights = element_mean(element_weights, event_valid)
         loss = segment_mean(element_mean(element_weights * elements, event_valid), torch.ones_like(weights), valid)
         return loss, element_mean(elements, event_valid), weights
+
+    def _step_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> Tensor:
+        """The inner per-step loss at ``key`` as ``[B, L]``, event dims reduced (over ``event_valid``'s entries)."""
+        return inner_output.step_losses(out, key, tensordict, self.tensor_keys.event_valid)
 
     def _weight_function(self, device: torch.device):
         """The weighting's function, compiled where ``compile_weights`` says so."""

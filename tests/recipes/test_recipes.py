@@ -286,7 +286,8 @@ def test_record_weights_matches_the_reference_averaged_over_windows():
     # A 1-D action and an actor that always outputs 0: the per-step MSE is action_t ** 2.
     actor = TensorDictModule(torch.nn.Linear(1, 1, bias=False), in_keys=["observation"], out_keys=["action"])
     torch.nn.init.zeros_(actor.module.weight)
-    objective = tar_loss(BCLoss(actor, loss_function="mse", reduction="none"), "uniform", gamma=1.0, w_max=3.0)
+    # uniform has no parameters: record_weights weights with TAR at its defaults
+    objective = tar_loss(BCLoss(actor, loss_function="mse", reduction="none"), "uniform")
     a = torch.tensor([0.1, 0.5, 0.2, 0.9, 0.3])
     episode = TensorDict({"observation": torch.zeros(5, 1), "action": a[:, None]}, [5])
     rows = record_weights(objective, [("reach", 7, episode)], slice_len=3, step=11)
