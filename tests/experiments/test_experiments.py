@@ -357,8 +357,12 @@ def test_ci_pairs_differ_only_in_objective_and_tuning_uses_its_own_eval_seed(ci_
     by_seed = {}
     for c in protocol:
         by_seed.setdefault(c["seed"], {})[c["objective"]["name"]] = c
+    tar_params = {"gamma": 1.0, "w_max": 3.0, "eps": 1e-8, "cap": "paper"}  # tar's own, at their defaults
     for seed in (0, 1):
-        diff = config_differences(by_seed[seed]["uniform"], by_seed[seed]["tar"])
+        tar = by_seed[seed]["tar"]
+        assert {key: tar["objective"][key] for key in tar_params} == tar_params
+        tar = {**tar, "objective": {k: v for k, v in tar["objective"].items() if k not in tar_params}}
+        diff = config_differences(by_seed[seed]["uniform"], tar)
         assert diff == ["objective.name: 'uniform' -> 'tar'"], diff
     tuning = [c for c in configs.values() if c["eval"]["seed"] == 2000]
     assert len(tuning) == 3 and {c["objective"]["name"] for c in tuning} == {"uniform", "tar"}
