@@ -58,7 +58,7 @@ from tar_rl.io import write_csv_atomic
 from tar_rl.objectives import (
     WEIGHTINGS,
     TARLoss,
-    WeightingParams,
+    TARParams,
     focal_weights,
     keyframe_weights,
     tar_arm_weights,
@@ -164,7 +164,7 @@ def make_step(variant: str, net: torch.nn.Module, batch: TensorDict) -> Callable
             if variant in ("uniform", "tar", *BASELINES, *ELEMENT):
                 loss_module = TARLoss(inner, variant)
             elif variant == "tar_exact":
-                loss_module = TARLoss(inner, "tar", cap="exact")
+                loss_module = TARLoss(inner, "tar", params=TARParams(cap="exact"))
             else:
                 raise ValueError(f"unknown variant {variant!r}")
             key = "loss_tar"
@@ -195,7 +195,8 @@ def tar_exact(losses: Tensor, valid: Tensor) -> Tensor:
 
 def make_dro_time(batch: TensorDict) -> Callable[[Tensor, Tensor], Tensor]:
     """``dro_time``'s registered function on the batch's steps, from uniform group weights (as ``TARLoss`` calls it)."""
-    spec, params = WEIGHTINGS["dro_time"], WeightingParams()
+    spec = WEIGHTINGS["dro_time"]
+    params = spec.params()
     state = spec.initial_state(params)
     step, length = batch.get("step"), batch.get("episode_length")
 

@@ -252,7 +252,8 @@ def config_page() -> str:
         + ", ".join(f"`{n}`" for n in _default_first(WEIGHTINGS, "tar"))
         + " (the weightings below); presets: "
         + ", ".join(
-            f"`{n}` ({_changes(cfgmod.ObjectiveConfig(name=p.name), p)})" for n, p in cfgmod.OBJECTIVE_PRESETS.items()
+            f"`{n}` ({_changes(cfgmod.objective_config(p.name)(name=p.name), p)})"
+            for n, p in cfgmod.OBJECTIVE_PRESETS.items()
         )
         + " |",
         "| `policy` | " + ", ".join(f"`{n}`" for n in _default_first(POLICIES, "mlp")) + " (the heads below) |",
@@ -271,15 +272,12 @@ def config_page() -> str:
     out.append(f"| `init.from` | str \\| None | `null` |  | {init_line} |")
 
     for section in SECTIONS:
-        cls = {f.name: f.type for f in dataclasses.fields(cfgmod.TrainConfig)}[section]
-        cls = getattr(cfgmod, cls) if isinstance(cls, str) else cls
+        cls = cfgmod.ObjectiveConfig if section == "objective" else cfgmod.SECTIONS[section]
         doc = _summary_of_class(cls)
         out += ["", f"## `{section}`", "", doc, ""]
         out += _table(cls, f"{section}.", base)
         if section == "objective":
-            out += ["", "### Weightings (`objective=<name>`, registry `tar_rl.WEIGHTINGS`)", ""]
-            out += ["| name | what it is |", "|---|---|"]
-            out += [f"| `{name}` | {markdown(w.summary)} |" for name, w in WEIGHTINGS.items()]
+            out += _weighting_tables(cfgmod, WEIGHTINGS)
 
     out += [
         "",
@@ -304,6 +302,25 @@ def config_page() -> str:
     out += ["| name | what it imports |", "|---|---|"]
     out += [f"| `{name}` | {markdown(imp.help)} |" for name, imp in IMPORTERS.items()]
     return "\n".join(out) + "\n"
+
+
+def _weighting_tables(cfgmod, weightings) -> list[str]:
+    """The weightings, then one table per parameters class: the settings ``objective=<name>`` adds."""
+    out = ["", "### Weightings (`objective=<name>`, registry `tar_rl.WEIGHTINGS`)", ""]
+    out += ["| name | parameters | what it is |", "|---|---|---|"]
+    out += [f"| `{name}` | `{w.params.__name__}` | {markdown(w.summary)} |" for name, w in weightings.items()]
+    common = {f.name for f in dataclasses.fields(cfgmod.ObjectiveConfig)}
+    owners: dict[type, list[str]] = {}
+    for name, w in weightings.items():
+        owners.setdefault(w.params, []).append(name)
+    for params, names in owners.items():
+        if not dataclasses.fields(params):
+            continue
+        options = ", ".join(f"`objective={n}`" for n in names)
+        out += ["", f"#### {options} (`{params.__name__}`)", ""]
+        config = cfgmod.default_config(names[0], "mlp")
+        out += _table(cfgmod.objective_config(names[0]), "objective.", config, skip=tuple(common))
+    return out
 
 
 def _default_first(registry, default: str) -> list[str]:

@@ -2,6 +2,9 @@
 weightings (:mod:`~tar_rl.objectives.weighting`), the baselines from the literature, the element variants,
 TAR's schedule, ``TARLoss``.
 
+Each registered weighting owns a frozen dataclass of its parameters (``WEIGHTINGS[name].params``: ``TARParams``,
+``FocalParams``, ...), checked when built and given to ``TARLoss(inner, name, params=...)``.
+
 Installed as ``tar_rl.objectives`` (this folder is mapped there by ``pyproject.toml``). The weightings import
 torch only and are imported here, so that every weighting is registered in ``WEIGHTINGS``; ``TARLoss`` and the
 supervision transforms need torchrl and tensordict and are imported on first use, so that
@@ -15,6 +18,11 @@ from typing import TYPE_CHECKING
 
 from .baselines import (
     COUNT_TOLERANCE,
+    DROTimeParams,
+    FocalParams,
+    KeyframeParams,
+    TiltedParams,
+    TruncateParams,
     dro_time_weights,
     focal_weights,
     keyframe_count,
@@ -26,6 +34,7 @@ from .baselines import (
 )
 from .checks import check_step_losses
 from .elementwise import (
+    TARArmParams,
     check_element_losses,
     check_gripper_dims,
     element_mean,
@@ -42,20 +51,14 @@ from .tar import (
     DEFAULT_EPS,
     DEFAULT_GAMMA,
     DEFAULT_W_MAX,
+    TARParams,
     tar_weights,
 )
 from .weighting import (
-    DEFAULT_DRO_BINS,
-    DEFAULT_DRO_ETA,
-    DEFAULT_FOCAL_BETA,
-    DEFAULT_GRIPPER_DIMS,
-    DEFAULT_KEYFRAME_FACTOR,
-    DEFAULT_KEYFRAME_FRACTION,
-    DEFAULT_TILT,
-    DEFAULT_TRUNCATE_FRACTION,
     WEIGHTINGS,
+    NoParams,
+    PerturbParams,
     Weighting,
-    WeightingParams,
     get_weighting,
     invert_weights,
     perturb_mask,
@@ -66,15 +69,17 @@ from .weighting import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .supervision import perturb_target
-    from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, compiles_weights, segment_mean
+    from .supervision import PerturbedTarget, perturb_target
+    from .tar_loss import COMPILE_MODES, NONFINITE_MODES, TARLoss, WeightingState, compiles_weights, segment_mean
 
 # name -> the module that defines it, for the names that need torchrl or tensordict
 _LAZY = {
+    "PerturbedTarget": "supervision",
     "perturb_target": "supervision",
     "COMPILE_MODES": "tar_loss",
     "NONFINITE_MODES": "tar_loss",
     "TARLoss": "tar_loss",
+    "WeightingState": "tar_loss",
     "compiles_weights": "tar_loss",
     "segment_mean": "tar_loss",
 }
@@ -83,24 +88,26 @@ __all__ = [
     "CAP_MODES",
     "COMPILE_MODES",
     "COUNT_TOLERANCE",
-    "DEFAULT_DRO_BINS",
-    "DEFAULT_DRO_ETA",
     "DEFAULT_EPS",
-    "DEFAULT_FOCAL_BETA",
     "DEFAULT_GAMMA",
-    "DEFAULT_GRIPPER_DIMS",
-    "DEFAULT_KEYFRAME_FACTOR",
-    "DEFAULT_KEYFRAME_FRACTION",
-    "DEFAULT_TILT",
-    "DEFAULT_TRUNCATE_FRACTION",
     "DEFAULT_W_MAX",
     "NONFINITE_MODES",
     "SCHEDULE_SHAPES",
     "WEIGHTINGS",
+    "DROTimeParams",
+    "FocalParams",
+    "KeyframeParams",
     "MixSchedule",
+    "NoParams",
+    "PerturbParams",
+    "PerturbedTarget",
+    "TARArmParams",
     "TARLoss",
+    "TARParams",
+    "TiltedParams",
+    "TruncateParams",
     "Weighting",
-    "WeightingParams",
+    "WeightingState",
     "check_element_losses",
     "check_gripper_dims",
     "check_step_losses",

@@ -33,11 +33,12 @@ needs losses ``>= 0`` too.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .checks import check_step_losses
+from .checks import check_count, check_number, check_step_losses
 from .tar import (
     DEFAULT_W_MAX,
     HALF_DTYPES,
@@ -45,20 +46,15 @@ from .tar import (
     mix_uniform,
     unit_mean_softmax,
 )
-from .weighting import (
-    DEFAULT_DRO_ETA,
-    DEFAULT_FOCAL_BETA,
-    DEFAULT_KEYFRAME_FACTOR,
-    DEFAULT_KEYFRAME_FRACTION,
-    DEFAULT_TILT,
-    DEFAULT_TRUNCATE_FRACTION,
-    WEIGHTINGS,
-    Weighting,
-    WeightingParams,
-)
+from .weighting import WEIGHTINGS, Weighting
 
 __all__ = [
     "COUNT_TOLERANCE",
+    "DROTimeParams",
+    "FocalParams",
+    "KeyframeParams",
+    "TiltedParams",
+    "TruncateParams",
     "dro_time_weights",
     "focal_weights",
     "keyframe_count",
@@ -72,6 +68,100 @@ __all__ = [
 #: Added to ``q * n`` (``f * n + 1/2``) before rounding down, so that a product that is an
 #: integer on paper but falls just below it in binary (``0.29 * 100 = 28.999...``) rounds as on paper.
 COUNT_TOLERANCE = 1e-9
+
+
+# ---------------------------------------------------------------------------------------------
+# Each baseline's parameters, checked when built
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TiltedParams:
+    """``tilted``'s parameters.
+
+    Attributes:
+        tilt: ``t`` of ``M * softmax(t * l / mean l)``, a finite number ``> 0``. Default ``1.0``.
+    """
+
+    tilt: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_number("tilt", self.tilt, "a finite number > 0", lambda v: v > 0)
+
+
+@dataclass(frozen=True)
+class TruncateParams:
+    """``truncate``'s parameters.
+
+    Attributes:
+        truncate_fraction: ``q``, the fraction of a segment's valid steps, by loss from the top, that weigh 0
+            (``floor(q * M)`` steps), in ``[0, 1)``. Default ``0.1``.
+    """
+
+    truncate_fraction: float = 0.1
+
+    def __post_init__(self) -> None:
+        check_number("truncate_fraction", self.truncate_fraction, "a number in [0, 1)", lambda v: 0 <= v < 1)
+
+
+@dataclass(frozen=True)
+class KeyframeParams:
+    """``keyframe``'s parameters.
+
+    Attributes:
+        keyframe_fraction: ``f``, the fraction of a segment's valid steps, by loss from the top, that are
+            up-weighted (``floor(f * M + 1/2)`` steps, at least 1), in ``(0, 1)``. Default ``0.3``.
+        keyframe_factor: ``K``, how many times the others' weight those steps get, a finite number ``>= 1``.
+            Default ``5.0``.
+    """
+
+    keyframe_fraction: float = 0.3
+    keyframe_factor: float = 5.0
+
+    def __post_init__(self) -> None:
+        check_number("keyframe_fraction", self.keyframe_fraction, "a number in (0, 1)", lambda v: 0 < v < 1)
+        check_number("keyframe_factor", self.keyframe_factor, "a finite number >= 1", lambda v: v >= 1)
+
+
+@dataclass(frozen=True)
+class FocalParams:
+    """``focal``'s parameters.
+
+    Attributes:
+        focal_beta: ``beta`` of ``(l / mean l) ** beta``, a finite number ``>= 0``. Default ``1.0``.
+        w_max: the exact cap on a weight, ``>= 1`` (weights of mean 1 cannot all lie below 1; ``math.inf``:
+            none). Default ``3.0``, TAR's.
+    """
+
+    focal_beta: float = 1.0
+    w_max: float = DEFAULT_W_MAX
+
+    def __post_init__(self) -> None:
+        check_number("focal_beta", self.focal_beta, "a finite number >= 0", lambda v: v >= 0)
+        if not (isinstance(self.w_max, (int, float)) and not isinstance(self.w_max, bool) and self.w_max >= 1):
+            raise ValueError(
+                f"w_max must be >= 1 for the focal weighting, whose cap is exact (weights of mean 1 cannot all "
+                f"lie below 1), got {self.w_max!r}."
+            )
+
+
+@dataclass(frozen=True)
+class DROTimeParams:
+    """``dro_time``'s parameters.
+
+    Attributes:
+        dro_eta: ``eta``, the step size of the group weights, a finite number ``> 0``. Default ``0.01``, the
+            step size of Sagawa et al. (ICLR 2020) for their group DRO experiments.
+        dro_bins: ``G``, the number of bins of normalised episode time (the groups), an integer ``>= 1``.
+            Default ``10``.
+    """
+
+    dro_eta: float = 0.01
+    dro_bins: int = 10
+
+    def __post_init__(self) -> None:
+        check_number("dro_eta", self.dro_eta, "a finite number > 0", lambda v: v > 0)
+        check_count("dro_bins", self.dro_bins, 1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -216,7 +306,9 @@ def _finish(w: Tensor, m: Tensor, mix: float | Tensor, dtype: torch.dtype) -> Te
 # ---------------------------------------------------------------------------------------------
 
 
-def tilted_weights(losses: Tensor, valid: Tensor, *, tilt: float = DEFAULT_TILT, mix: float | Tensor = 1.0) -> Tensor:
+def tilted_weights(
+    losses: Tensor, valid: Tensor, *, tilt: float = TiltedParams.tilt, mix: float | Tensor = 1.0
+) -> Tensor:
     """Tilted empirical risk over the steps of a segment, made scale-free.
 
     Follows Li, Beirami, Sanjabi and Smith, "Tilted Empirical Risk Minimization" (ICLR 2021):
@@ -240,12 +332,12 @@ def tilted_weights(losses: Tensor, valid: Tensor, *, tilt: float = DEFAULT_TILT,
     Returns:
         Weights as described in :mod:`~tar_rl.objectives.baselines`; no cap.
     """
-    params = WeightingParams(tilt=tilt)
+    params = TiltedParams(tilt=tilt)
     return _tilted_registered(losses, valid, params, mix, None)
 
 
 def truncate_weights(
-    losses: Tensor, valid: Tensor, *, fraction: float = DEFAULT_TRUNCATE_FRACTION, mix: float | Tensor = 1.0
+    losses: Tensor, valid: Tensor, *, fraction: float = TruncateParams.truncate_fraction, mix: float | Tensor = 1.0
 ) -> Tensor:
     """Loss truncation over the steps of a segment: the highest-loss steps weigh 0.
 
@@ -262,7 +354,7 @@ def truncate_weights(
             segments of fewer than 10 valid steps drop nothing.
         mix: the schedule's alpha in ``[0, 1]``.
     """
-    params = WeightingParams(truncate_fraction=fraction)
+    params = TruncateParams(truncate_fraction=fraction)
     return _truncate_registered(losses, valid, params, mix, None)
 
 
@@ -270,8 +362,8 @@ def keyframe_weights(
     losses: Tensor,
     valid: Tensor,
     *,
-    fraction: float = DEFAULT_KEYFRAME_FRACTION,
-    factor: float = DEFAULT_KEYFRAME_FACTOR,
+    fraction: float = KeyframeParams.keyframe_fraction,
+    factor: float = KeyframeParams.keyframe_factor,
     mix: float | Tensor = 1.0,
 ) -> Tensor:
     """Keyframe-focused weighting: the highest-loss steps weigh ``K`` times the others.
@@ -288,7 +380,7 @@ def keyframe_weights(
         factor: ``K``, a finite number ``>= 1`` (``1``: uniform). Default ``5.0``.
         mix: the schedule's alpha in ``[0, 1]``.
     """
-    params = WeightingParams(keyframe_fraction=fraction, keyframe_factor=factor)
+    params = KeyframeParams(keyframe_fraction=fraction, keyframe_factor=factor)
     return _keyframe_registered(losses, valid, params, mix, None)
 
 
@@ -296,7 +388,7 @@ def focal_weights(
     losses: Tensor,
     valid: Tensor,
     *,
-    beta: float = DEFAULT_FOCAL_BETA,
+    beta: float = FocalParams.focal_beta,
     w_max: float = DEFAULT_W_MAX,
     mix: float | Tensor = 1.0,
 ) -> Tensor:
@@ -320,8 +412,7 @@ def focal_weights(
         w_max: the cap, ``>= 1`` (``math.inf``: none). Default ``3.0``.
         mix: the schedule's alpha in ``[0, 1]``.
     """
-    params = WeightingParams(focal_beta=beta, w_max=w_max)
-    _check_focal(params)
+    params = FocalParams(focal_beta=beta, w_max=w_max)
     return _focal_registered(losses, valid, params, mix, None)
 
 
@@ -372,7 +463,7 @@ def dro_time_weights(
     time_bin: Tensor,
     log_q: Tensor,
     *,
-    eta: float = DEFAULT_DRO_ETA,
+    eta: float = DROTimeParams.dro_eta,
     mix: float | Tensor = 1.0,
     reduce=None,
 ) -> tuple[Tensor, Tensor]:
@@ -417,7 +508,7 @@ def dro_time_weights(
     """
     if not (isinstance(log_q, Tensor) and log_q.is_floating_point() and log_q.ndim == 1 and log_q.numel() >= 1):
         raise ValueError(f"log_q must be a [G] floating tensor, got {getattr(log_q, 'shape', type(log_q).__name__)}.")
-    params = WeightingParams(dro_eta=eta, dro_bins=log_q.shape[0])
+    params = DROTimeParams(dro_eta=eta, dro_bins=log_q.shape[0])
     check_step_losses(losses, valid)
     if not isinstance(time_bin, Tensor) or time_bin.is_floating_point() or time_bin.shape != losses.shape:
         raise ValueError(f"time_bin must be an integer tensor shaped like losses {tuple(losses.shape)}.")
@@ -431,14 +522,6 @@ def dro_time_weights(
 # ---------------------------------------------------------------------------------------------
 # Registration: (losses, valid, params, mix, generator, **inputs) -> weights (see Weighting)
 # ---------------------------------------------------------------------------------------------
-
-
-def _check_focal(params: WeightingParams) -> None:
-    if not params.w_max >= 1:
-        raise ValueError(
-            f"w_max must be >= 1 for the focal weighting, whose cap is exact (weights of mean 1 cannot all "
-            f"lie below 1), got {params.w_max!r}."
-        )
 
 
 def _tilted_registered(losses, valid, params, mix, generator):
@@ -475,7 +558,7 @@ def _dro_time_registered(losses, valid, params, mix, generator, *, step, episode
     return _dro_time(losses, valid, time_bin, state, params.dro_eta, mix, reduce)
 
 
-def _dro_time_initial_state(params: WeightingParams) -> Tensor:
+def _dro_time_initial_state(params: DROTimeParams) -> Tensor:
     """Uniform group weights, as ``log q`` (float64: ``[G]`` numbers, kept exactly over a long run)."""
     return torch.full((params.dro_bins,), -math.log(params.dro_bins), dtype=torch.float64)
 
@@ -484,27 +567,31 @@ for _w in (
     Weighting(
         "tilted",
         _tilted_registered,
+        TiltedParams,
         summary="tilted empirical risk over a segment's steps, M * softmax(t * l / mean l) (Li et al. 2021)",
     ),
     Weighting(
         "truncate",
         _truncate_registered,
+        TruncateParams,
         summary="loss truncation: a segment's top fraction q of steps by loss weigh 0 (Kang and Hashimoto 2020)",
     ),
     Weighting(
         "keyframe",
         _keyframe_registered,
+        KeyframeParams,
         summary="a segment's top fraction f of steps by loss weigh K times the others (after Wen et al. 2021)",
     ),
     Weighting(
         "focal",
         _focal_registered,
-        check=_check_focal,
+        FocalParams,
         summary="(l / mean l) ** beta, unit mean, exact cap at w_max (focal weighting for regression)",
     ),
     Weighting(
         "dro_time",
         _dro_time_registered,
+        DROTimeParams,
         reads_time=True,
         initial_state=_dro_time_initial_state,
         summary="group DRO over ten bins of normalised episode time (Sagawa et al., ICLR 2020)",

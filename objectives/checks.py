@@ -1,11 +1,14 @@
-"""Checks of the inputs of every weighting: per-step (or per-element) losses and their mask; imports torch only."""
+"""Checks of the inputs of every weighting (per-step or per-element losses and their mask) and of the numbers its
+parameters hold; imports torch only."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
 
-__all__ = ["check_step_losses"]
+__all__ = ["check_count", "check_finite", "check_number", "check_step_losses"]
 
 
 def check_step_losses(losses: Tensor, valid: Tensor) -> None:
@@ -47,3 +50,17 @@ def check_finite(losses: Tensor, valid: Tensor, what: str) -> None:
             f"{message} {int(bad.sum())} of {int(valid.sum())} valid {what}s are NaN or inf "
             f"(first at index {first}, value {losses.detach()[first].item()})."
         )
+
+
+def check_number(name: str, value: object, rule: str, ok) -> None:
+    """Raise a ``ValueError`` naming the parameter ``name`` unless ``value`` is a finite real number (not a bool)
+    for which ``ok(value)`` holds; ``rule`` says the range in words (``"a number in [0, 1)"``)."""
+    finite = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not (finite and ok(value)):
+        raise ValueError(f"{name} must be {rule}, got {value!r}.")
+
+
+def check_count(name: str, value: object, low: int) -> None:
+    """Raise a ``ValueError`` naming the parameter ``name`` unless ``value`` is an int (not a bool) ``>= low``."""
+    if not (isinstance(value, int) and not isinstance(value, bool) and value >= low):
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}.")

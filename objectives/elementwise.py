@@ -28,6 +28,8 @@ Conventions (shared by every element weighting, ``Weighting.elementwise``):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
@@ -38,15 +40,13 @@ from .tar import (
     DEFAULT_W_MAX,
     HALF_DTYPES,
     CapMode,
+    TARParams,
     weights_from_scores,
 )
-from .weighting import (
-    WEIGHTINGS,
-    Weighting,
-    WeightingParams,
-)
+from .weighting import WEIGHTINGS, Weighting
 
 __all__ = [
+    "TARArmParams",
     "check_element_losses",
     "check_gripper_dims",
     "element_mean",
@@ -54,6 +54,30 @@ __all__ = [
     "tar_arm_weights",
     "tar_dimnorm_weights",
 ]
+
+
+@dataclass(frozen=True)
+class TARArmParams(TARParams):
+    """``tar_arm``'s parameters: TAR's (:class:`~tar_rl.objectives.tar.TARParams`) and the gripper's dims.
+
+    Attributes:
+        gripper_dims: the gripper's action dims (indices along the last axis of per-element losses; negative
+            counts from the end) that ``tar_arm`` averages uniformly, a non-empty tuple of distinct ints.
+            Default ``(-1,)``, the last dim (MetaWorld's and LIBERO's gripper).
+    """
+
+    gripper_dims: tuple[int, ...] = (-1,)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        dims = self.gripper_dims
+        if not (
+            isinstance(dims, tuple)
+            and dims
+            and all(isinstance(d, int) and not isinstance(d, bool) for d in dims)
+            and len(set(dims)) == len(dims)
+        ):
+            raise ValueError(f"gripper_dims must be a non-empty tuple of distinct ints, got {dims!r}.")
 
 
 def check_element_losses(losses: Tensor, valid: Tensor) -> None:
@@ -124,7 +148,7 @@ def _gripper_mask(n_dims: int, gripper_dims: tuple[int, ...], device: torch.devi
     return gripper
 
 
-def _tar_arm(losses: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor, generator) -> Tensor:
+def _tar_arm(losses: Tensor, valid: Tensor, params: TARArmParams, mix: float | Tensor, generator) -> Tensor:
     check_element_losses(losses, valid)
     x, step_valid = _prepare(losses, valid)
     gripper = _gripper_mask(x.shape[-1], params.gripper_dims, x.device)
@@ -134,7 +158,7 @@ def _tar_arm(losses: Tensor, valid: Tensor, params: WeightingParams, mix: float 
     return torch.where(arm_valid, w, valid.to(x.dtype)).to(losses.dtype)
 
 
-def _tar_dimnorm(losses: Tensor, valid: Tensor, params: WeightingParams, mix: float | Tensor, generator) -> Tensor:
+def _tar_dimnorm(losses: Tensor, valid: Tensor, params: TARParams, mix: float | Tensor, generator) -> Tensor:
     check_element_losses(losses, valid)
     x, step_valid = _prepare(losses, valid)
     m = valid.to(x.dtype)
@@ -151,7 +175,7 @@ def tar_arm_weights(
     losses: Tensor,
     valid: Tensor,
     *,
-    gripper_dims: tuple[int, ...] = (-1,),
+    gripper_dims: tuple[int, ...] = TARArmParams.gripper_dims,
     gamma: float = DEFAULT_GAMMA,
     w_max: float = DEFAULT_W_MAX,
     eps: float = DEFAULT_EPS,
@@ -184,7 +208,7 @@ def tar_arm_weights(
         >>> tar_arm_weights(losses, torch.ones(1, 2, 2, dtype=torch.bool), w_max=float("inf"))[0, :, 1].tolist()
         [1.0, 1.0]
     """
-    params = WeightingParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap, gripper_dims=gripper_dims)
+    params = TARArmParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap, gripper_dims=gripper_dims)
     return _tar_arm(losses, valid, params, mix, None)
 
 
@@ -212,7 +236,7 @@ def tar_dimnorm_weights(
     Returns:
         Per-element weights of the shape and dtype of ``losses``.
     """
-    params = WeightingParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
+    params = TARParams(gamma=gamma, w_max=w_max, eps=eps, cap=cap)
     return _tar_dimnorm(losses, valid, params, mix, None)
 
 
@@ -220,12 +244,14 @@ for _w in (
     Weighting(
         "tar_arm",
         _tar_arm,
+        TARArmParams,
         elementwise=True,
         summary="TAR scored and applied on the arm's action dims; the gripper's loss averaged uniformly",
     ),
     Weighting(
         "tar_dimnorm",
         _tar_dimnorm,
+        TARParams,
         elementwise=True,
         summary="TAR scored on per-element losses normalised by their action dimension's batch mean",
     ),

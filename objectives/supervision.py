@@ -11,12 +11,18 @@ renames its keys for the controls.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
+from torchrl.objectives import LossModule
 
-__all__ = ["perturb_target"]
+from .inner import loss_entry, read_valid, scored, step_losses
+from .weighting import PerturbParams, perturb_mask
+
+__all__ = ["PerturbedTarget", "perturb_target"]
 
 
 def perturb_target(
@@ -41,3 +47,94 @@ def perturb_target(
     perturbed = tensordict.copy()
     perturbed.set(key, target + scale * noise * chosen)
     return perturbed
+
+
+class PerturbedTarget(LossModule):
+    """An inner loss whose expert target is corrupted on the steps TAR would up- (or down-) weight: the
+    ``perturb_high`` / ``perturb_low`` controls, which :class:`~tar_rl.objectives.TARLoss` builds around its
+    inner loss (and then averages uniformly).
+
+    Each call runs the inner loss twice: once without gradients on the clean batch, whose per-step losses
+    (event dims reduced as ``TARLoss`` reduces them) choose, per segment, the
+    ``floor(fraction * mix * M + 1/2)`` highest-loss (``which="high"``) or lowest-loss (``"low"``) valid steps
+    (:func:`~tar_rl.objectives.weighting.perturb_mask`); then on a copy of the batch whose target has Gaussian
+    noise of std ``perturb_scale`` on those steps (:func:`perturb_target`). Its output is the second pass's,
+    with the detached diagnostic ``perturbed_fraction`` (chosen steps over valid steps).
+
+    Args:
+        inner (LossModule): the per-step loss (``reduction="none"``).
+        which (str): ``"high"`` or ``"low"``.
+        params (PerturbParams): ``perturb_fraction`` and ``perturb_scale``.
+
+    Keyword Args:
+        loss_key (NestedKey): the inner output holding the per-step loss; default: its only ``loss_*`` entry.
+        nonfinite (str): ``"raise"`` or ``"propagate"``, as for ``TARLoss`` (a non-finite clean loss ranks as 0).
+        generator (torch.Generator): draws the tie-breaks and the noise.
+
+    ``forward(tensordict, mix=1.0)`` takes the schedule's alpha, which scales the fraction.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Input keys, as :class:`~tar_rl.objectives.TARLoss`'s (which sets them here).
+
+        Attributes:
+            valid (NestedKey): bool ``[B, L]`` mask, ``True`` on real steps. Defaults to ``("collector", "mask")``.
+            action (NestedKey): the supervision target to corrupt. Defaults to ``"action"``.
+            event_valid (NestedKey, optional): bool mask over the loss's event dims, ``True`` on real elements.
+        """
+
+        valid: NestedKey = ("collector", "mask")
+        action: NestedKey = "action"
+        event_valid: NestedKey | None = None
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+
+    def __init__(
+        self,
+        inner: LossModule,
+        which: str,
+        params: PerturbParams,
+        *,
+        loss_key: NestedKey | None = None,
+        nonfinite: str = "raise",
+        generator: torch.Generator | None = None,
+    ) -> None:
+        if which not in ("high", "low"):
+            raise ValueError(f"which must be 'high' or 'low', got {which!r}.")
+        if not isinstance(params, PerturbParams):
+            raise TypeError(f"params must be PerturbParams, got {type(params).__name__}.")
+        super().__init__()
+        self.inner = inner
+        self.which = which
+        self.params = params
+        self.loss_key = loss_key
+        self.nonfinite = nonfinite
+        self.generator = generator
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        return list(self.inner.in_keys)
+
+    @property
+    def out_keys(self) -> list[NestedKey]:
+        return [*getattr(self.inner, "out_keys", ()), "perturbed_fraction"]
+
+    def forward(self, tensordict: TensorDictBase, mix: float | Tensor = 1.0) -> TensorDictBase:
+        valid = read_valid(tensordict, self.tensor_keys.valid)
+        with torch.no_grad():
+            clean_out = self.inner(tensordict)
+            key = loss_entry(clean_out, self.loss_key)
+            clean = scored(step_losses(clean_out, key, tensordict, self.tensor_keys.event_valid), valid, self.nonfinite)
+        fraction = self.params.perturb_fraction * mix
+        chosen = perturb_mask(clean, valid, fraction=fraction, which=self.which, generator=self.generator)
+        perturbed = perturb_target(
+            tensordict, self.tensor_keys.action, chosen, self.params.perturb_scale, self.generator
+        )
+        out = self.inner(perturbed)
+        out.set("perturbed_fraction", chosen.sum() / valid.sum().clamp_min(1))
+        return out

@@ -22,6 +22,7 @@ inputs and detached losses, and the package does not export them.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -29,7 +30,7 @@ from torch import Tensor
 
 from .checks import check_step_losses
 
-__all__ = ["CAP_MODES", "DEFAULT_EPS", "DEFAULT_GAMMA", "DEFAULT_W_MAX", "tar_weights"]
+__all__ = ["CAP_MODES", "DEFAULT_EPS", "DEFAULT_GAMMA", "DEFAULT_W_MAX", "TARParams", "tar_weights"]
 
 #: Softmax temperature on the within-segment z-scores (Eq. 6). With ``gamma=1`` a step one
 #: standard deviation above the segment mean gets ``e`` times the weight of an average step.
@@ -61,14 +62,44 @@ def check_tar_params(*, gamma: float, w_max: float, eps: float, cap: CapMode) ->
     if not (isinstance(eps, (int, float)) and math.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be a finite number > 0, got {eps!r}.")
     if cap not in CAP_MODES:
-        raise ValueError(f"cap must be one of {CAP_MODES}, got {cap!r}.")
+        raise ValueError(f"cap must be one of {list(CAP_MODES)}, got {cap!r}.")
     if cap == "exact" and w_max < 1:
-        raise ValueError(f"cap='exact' needs w_max >= 1 (weights of mean 1 cannot all be below 1), got {w_max!r}.")
+        raise ValueError(
+            f"w_max >= 1 is needed by cap='exact' (weights of mean 1 cannot all be below 1), got {w_max!r}."
+        )
     if w_max < MIN_W_MAX:
         raise ValueError(
             f"w_max must be >= {MIN_W_MAX:.4g} (the smallest normal float32: renormalising weights clipped at a "
             f"smaller cap overflows to inf), got {w_max!r}."
         )
+
+
+@dataclass(frozen=True)
+class TARParams:
+    """TAR's hyper-parameters (Eqs. 5-8), checked when built; also those of TAR's controls (``shuffle``,
+    ``random``, ``invert``) and of ``tar_dimnorm``.
+
+    Attributes:
+        gamma: softmax temperature on the z-scores (Eq. 6), a finite number ``> 0``. Default ``1.0``.
+        w_max: cap on a step's weight (Eq. 8), ``> 0``; ``math.inf`` disables the cap. ``cap="exact"``
+            needs ``w_max >= 1`` (weights of mean 1 cannot all lie below 1). Default ``3.0``.
+        eps: stabiliser added to the standard deviation (Eq. 5), a finite number ``> 0``. Default ``1e-8``.
+        cap: ``"paper"`` clips once and renormalises (Eq. 8 as printed: after it a weight may end above
+            ``w_max``); ``"exact"`` finds the unit-mean weights ``min(c * w, w_max)`` for which the cap
+            holds exactly. Default ``"paper"``.
+    """
+
+    gamma: float = DEFAULT_GAMMA
+    w_max: float = DEFAULT_W_MAX
+    eps: float = DEFAULT_EPS
+    cap: CapMode = "paper"
+
+    def __post_init__(self) -> None:
+        check_tar_params(gamma=self.gamma, w_max=self.w_max, eps=self.eps, cap=self.cap)
+
+    def tar_kwargs(self) -> dict:
+        """TAR's four hyper-parameters as keyword arguments of :func:`tar_weights`."""
+        return {"gamma": self.gamma, "w_max": self.w_max, "eps": self.eps, "cap": self.cap}
 
 
 def _zscores(x: Tensor, m: Tensor, count: Tensor, eps: float) -> Tensor:

@@ -1,10 +1,11 @@
-"""TAR's control variants (shuffle, random, invert, the supervision perturbations), ``window_weights``,
-the hyper-parameters of every weighting (``WeightingParams``) and the registry of weightings.
+"""TAR's control variants (shuffle, random, invert, the supervision perturbations), ``window_weights``
+and the registry of weightings, each entry naming the frozen dataclass of its own parameters.
 
-TAR itself (paper Eqs. 3-8, ``tar_weights``) lives in :mod:`~tar_rl.objectives.tar`; the controls
-reuse its building blocks. The baselines from the literature (tilted, truncate, keyframe, focal,
-dro_time) live in :mod:`~tar_rl.objectives.baselines` and share :mod:`~tar_rl.objectives.tar`'s
-conventions (shapes, mask polarity, unit mean) and this module's parameters and registry.
+TAR itself (paper Eqs. 3-8, ``tar_weights``, its parameters ``TARParams``) lives in
+:mod:`~tar_rl.objectives.tar`; the controls reuse its building blocks and its parameters. The
+baselines from the literature (tilted, truncate, keyframe, focal, dro_time) live in
+:mod:`~tar_rl.objectives.baselines`, each with its own parameters, and share
+:mod:`~tar_rl.objectives.tar`'s conventions (shapes, mask polarity, unit mean) and this registry.
 
 Every function here is pure: it reads ``losses`` and ``valid`` and returns a new tensor of
 weights. Nothing is differentiated through the weights.
@@ -20,31 +21,20 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .checks import check_step_losses
+from .checks import check_number, check_step_losses
 from .registry import Registry
 from .tar import (
-    DEFAULT_EPS,
-    DEFAULT_GAMMA,
-    DEFAULT_W_MAX,
     HALF_DTYPES,
-    CapMode,
-    check_tar_params,
+    TARParams,
     tar_weights,
     weights_from_scores,
 )
 
 __all__ = [
-    "DEFAULT_DRO_BINS",
-    "DEFAULT_DRO_ETA",
-    "DEFAULT_FOCAL_BETA",
-    "DEFAULT_GRIPPER_DIMS",
-    "DEFAULT_KEYFRAME_FACTOR",
-    "DEFAULT_KEYFRAME_FRACTION",
-    "DEFAULT_TILT",
-    "DEFAULT_TRUNCATE_FRACTION",
     "WEIGHTINGS",
+    "NoParams",
+    "PerturbParams",
     "Weighting",
-    "WeightingParams",
     "get_weighting",
     "invert_weights",
     "perturb_mask",
@@ -55,99 +45,30 @@ __all__ = [
     "window_weights",
 ]
 
-#: Tilt ``t`` of the ``tilted`` baseline (:func:`~tar_rl.objectives.baselines.tilted_weights`).
-DEFAULT_TILT = 1.0
-#: Fraction ``q`` of a segment's valid steps that the ``truncate`` baseline drops.
-DEFAULT_TRUNCATE_FRACTION = 0.1
-#: Fraction ``f`` of a segment's valid steps that the ``keyframe`` baseline up-weights.
-DEFAULT_KEYFRAME_FRACTION = 0.3
-#: How many times the weight of the other steps the ``keyframe`` baseline gives its selected steps.
-DEFAULT_KEYFRAME_FACTOR = 5.0
-#: Exponent ``beta`` of the ``focal`` baseline.
-DEFAULT_FOCAL_BETA = 1.0
-#: Step size ``eta`` of the ``dro_time`` baseline's group weights: 0.01, the step size of Sagawa et al.
-#: (ICLR 2020) for their group DRO experiments.
-DEFAULT_DRO_ETA = 0.01
-#: Groups of the ``dro_time`` baseline: bins of normalised episode time.
-DEFAULT_DRO_BINS = 10
-#: ``tar_arm``'s gripper dims: the last action dim (MetaWorld's and LIBERO's gripper).
-DEFAULT_GRIPPER_DIMS: tuple[int, ...] = (-1,)
 
-
-def _finite_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+@dataclass(frozen=True)
+class NoParams:
+    """The parameters of a weighting that has none (``uniform``)."""
 
 
 @dataclass(frozen=True)
-class WeightingParams:
-    """The hyper-parameters of every registered weighting, checked once when built.
-
-    TAR and its controls read ``gamma``, ``w_max``, ``eps`` and ``cap``; each baseline of
-    :mod:`~tar_rl.objectives.baselines` reads its own fields (``focal`` also ``w_max``).
+class PerturbParams:
+    """The parameters of the supervision-perturbation controls ``perturb_high`` and ``perturb_low``
+    (:class:`~tar_rl.objectives.supervision.PerturbedTarget`), checked when built. The paper gives neither.
 
     Attributes:
-        gamma: softmax temperature on the z-scores (Eq. 6), ``> 0``.
-        w_max: cap on a step's weight (Eq. 8), ``> 0``; ``math.inf`` disables the cap.
-            ``cap="exact"`` needs ``w_max >= 1`` (weights of mean 1 cannot all lie below 1).
-        eps: stabiliser added to the standard deviation (Eq. 5), ``> 0``.
-        cap: ``"paper"`` clips once and renormalises (Eq. 8 as printed: after it a weight may
-            end above ``w_max``); ``"exact"`` finds the unit-mean weights
-            ``min(c * w, w_max)`` for which the cap holds exactly.
-        tilt: ``t`` of ``tilted``, a finite number ``> 0``. Default ``1.0``.
-        truncate_fraction: ``q`` of ``truncate``, in ``[0, 1)``. Default ``0.1``.
-        keyframe_fraction: ``f`` of ``keyframe``, in ``(0, 1)``. Default ``0.3``.
-        keyframe_factor: ``K`` of ``keyframe``, a finite number ``>= 1``. Default ``5.0``.
-        focal_beta: ``beta`` of ``focal``, a finite number ``>= 0``. Default ``1.0``.
-        dro_eta: ``eta`` of ``dro_time``, the step size of its group weights, a finite number ``> 0``.
-            Default ``0.01``.
-        dro_bins: ``G`` of ``dro_time``, the number of bins of normalised episode time, an integer
-            ``>= 1``. Default ``10``.
-        gripper_dims: the gripper's action dims (indices along the last axis of per-element
-            losses; negative counts from the end) that ``tar_arm`` averages uniformly: a
-            non-empty tuple of distinct ints. Default ``(-1,)``.
+        perturb_fraction: the fraction of each segment's valid steps whose expert target is corrupted at
+            full schedule strength (scaled by the schedule's alpha), in ``[0, 1]``. Default ``0.25``.
+        perturb_scale: the standard deviation of the Gaussian noise added to those targets, in target units,
+            a finite number ``>= 0``. Default ``0.1``.
     """
 
-    gamma: float = DEFAULT_GAMMA
-    w_max: float = DEFAULT_W_MAX
-    eps: float = DEFAULT_EPS
-    cap: CapMode = "paper"
-    tilt: float = DEFAULT_TILT
-    truncate_fraction: float = DEFAULT_TRUNCATE_FRACTION
-    keyframe_fraction: float = DEFAULT_KEYFRAME_FRACTION
-    keyframe_factor: float = DEFAULT_KEYFRAME_FACTOR
-    focal_beta: float = DEFAULT_FOCAL_BETA
-    dro_eta: float = DEFAULT_DRO_ETA
-    dro_bins: int = DEFAULT_DRO_BINS
-    gripper_dims: tuple[int, ...] = DEFAULT_GRIPPER_DIMS
+    perturb_fraction: float = 0.25
+    perturb_scale: float = 0.1
 
     def __post_init__(self) -> None:
-        check_tar_params(gamma=self.gamma, w_max=self.w_max, eps=self.eps, cap=self.cap)
-        for name, ok, rule in (
-            ("tilt", lambda v: v > 0, "a finite number > 0"),
-            ("truncate_fraction", lambda v: 0 <= v < 1, "a number in [0, 1)"),
-            ("keyframe_fraction", lambda v: 0 < v < 1, "a number in (0, 1)"),
-            ("keyframe_factor", lambda v: v >= 1, "a finite number >= 1"),
-            ("focal_beta", lambda v: v >= 0, "a finite number >= 0"),
-            ("dro_eta", lambda v: v > 0, "a finite number > 0"),
-        ):
-            value = getattr(self, name)
-            if not (_finite_number(value) and ok(value)):
-                raise ValueError(f"{name} must be {rule}, got {value!r}.")
-        bins = self.dro_bins
-        if not (isinstance(bins, int) and not isinstance(bins, bool) and bins >= 1):
-            raise ValueError(f"dro_bins must be an integer >= 1, got {bins!r}.")
-        dims = self.gripper_dims
-        if not (
-            isinstance(dims, tuple)
-            and dims
-            and all(isinstance(d, int) and not isinstance(d, bool) for d in dims)
-            and len(set(dims)) == len(dims)
-        ):
-            raise ValueError(f"gripper_dims must be a non-empty tuple of distinct ints, got {dims!r}.")
-
-    def tar_kwargs(self) -> dict:
-        """TAR's hyper-parameters as keyword arguments of :func:`~tar_rl.objectives.tar.tar_weights`."""
-        return {"gamma": self.gamma, "w_max": self.w_max, "eps": self.eps, "cap": self.cap}
+        check_number("perturb_fraction", self.perturb_fraction, "a number in [0, 1]", lambda v: 0 <= v <= 1)
+        check_number("perturb_scale", self.perturb_scale, "a finite number >= 0", lambda v: v >= 0)
 
 
 def _rand_like(x: Tensor, generator: torch.Generator | None, normal: bool) -> Tensor:
@@ -208,7 +129,7 @@ def invert_weights(losses: Tensor, valid: Tensor, *, mix: float | Tensor = 1.0, 
     same temperature, unit mean, mixing and cap (``**params`` as in :func:`tar_weights`).
     """
     check_step_losses(losses, valid)
-    return weights_from_scores(-losses.detach(), valid, mix=mix, **WeightingParams(**params).tar_kwargs())
+    return weights_from_scores(-losses.detach(), valid, mix=mix, **TARParams(**params).tar_kwargs())
 
 
 def random_weights(
@@ -226,7 +147,7 @@ def random_weights(
     """
     check_step_losses(losses, valid)
     scores = _rand_like(losses, generator, normal=True).to(losses.dtype)
-    return weights_from_scores(scores, valid, mix=mix, **WeightingParams(**params).tar_kwargs())
+    return weights_from_scores(scores, valid, mix=mix, **TARParams(**params).tar_kwargs())
 
 
 def _random_order(valid: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -301,39 +222,40 @@ class Weighting:
 
     Attributes:
         name: the registry name a recipe uses.
-        weights: ``(losses, valid, params, mix, generator, **inputs) -> weights``, pure. ``inputs`` is
-            empty unless the fields below say otherwise: a weighting that ``reads_time`` also gets
-            ``step`` and ``episode_length`` (integer tensors shaped like ``losses``: each step's index in
-            its episode and that episode's length); a stateful one (``initial_state`` set) also gets
-            ``state`` (its current state, not modified) and ``reduce`` (``None``, or a function that
-            sums a tensor over the ranks of a distributed job, for the batch statistics its update
-            reads) and returns ``(weights, new_state)``.
-        perturb: ``"high"``/``"low"`` for the supervision-perturbation controls: the objective
-            corrupts the expert actions of the steps :func:`perturb_mask` selects and averages
-            uniformly; ``None`` otherwise.
+        weights: ``(losses, valid, params, mix, generator, **inputs) -> weights``, pure; ``params`` is an
+            instance of ``params``. ``inputs`` is empty unless the fields below say otherwise: a weighting
+            that ``reads_time`` also gets ``step`` and ``episode_length`` (integer tensors shaped like
+            ``losses``: each step's index in its episode and that episode's length); a stateful one
+            (``initial_state`` set) also gets ``state`` (its current state, not modified) and ``reduce``
+            (``None``, or a function that sums a tensor over the ranks of a distributed job, for the batch
+            statistics its update reads) and returns ``(weights, new_state)``.
+        params: the frozen dataclass of the weighting's parameters (its defaults are the weighting's; its
+            ``__post_init__`` refuses a value out of range, naming the field). The recipe's config group of
+            the weighting is generated from its fields.
+        perturb: ``"high"``/``"low"`` for the supervision-perturbation controls: the objective wraps its
+            inner loss in :class:`~tar_rl.objectives.supervision.PerturbedTarget`, which corrupts the expert
+            targets of the steps :func:`perturb_mask` selects, and averages uniformly; ``None`` otherwise.
         stochastic: whether the weighting draws random numbers (from ``generator``).
         summary: one line for listings and error messages.
-        check: ``(params) -> None``, raises a ``ValueError`` naming the parameter when
-            ``params`` (valid in general) do not suit this weighting; ``None``: all do.
         reads_time: whether ``weights`` reads each step's position in its episode (``step``,
             ``episode_length``).
-        initial_state: ``(params) -> state``, the state a stateful weighting starts from (a tensor
-            that :class:`~tar_rl.objectives.TARLoss` holds as a buffer, so that it is part of its
-            ``state_dict()``, and replaces with ``new_state`` after each training step); ``None``
+        initial_state: ``(params) -> state``, the state a stateful weighting starts from (a tensor that
+            :class:`~tar_rl.objectives.tar_loss.WeightingState` holds as a buffer, so that it is part of the
+            objective's ``state_dict()``, and replaces with ``new_state`` after each training step); ``None``
             for a weighting without state.
-        elementwise: ``weights`` scores per-element losses ``[B, L, *event, A]`` with a mask of
-            that shape and returns per-element weights (:mod:`~tar_rl.objectives.elementwise`);
-            ``False``: per-step losses ``[..., L]`` in, per-step weights out.
+        elementwise: ``weights`` scores per-element losses ``[B, L, *event, A]`` with a mask of that shape and
+            returns per-element weights (:mod:`~tar_rl.objectives.elementwise`); ``False``: per-step losses
+            ``[..., L]`` in, per-step weights out.
     """
 
     name: str
     weights: Callable[..., Tensor | tuple[Tensor, Tensor]]
+    params: type = NoParams
     perturb: Literal["high", "low"] | None = None
     stochastic: bool = False
     summary: str = ""
-    check: Callable[[WeightingParams], None] | None = None
     reads_time: bool = False
-    initial_state: Callable[[WeightingParams], Tensor] | None = None
+    initial_state: Callable[..., Tensor] | None = None
     elementwise: bool = False
 
 
@@ -361,13 +283,20 @@ def _shuffle(losses, valid, params, mix, generator):
 WEIGHTINGS: Registry[Weighting] = Registry("weighting")
 for _w in (
     Weighting("uniform", _uniform, summary="uniform temporal mean over valid steps (Eq. 1)"),
-    Weighting("tar", _tar, summary="time-adaptive reweighting (Eqs. 3-8)"),
-    Weighting("shuffle", _shuffle, stochastic=True, summary="TAR's weights permuted among a segment's valid steps"),
-    Weighting("random", _random, stochastic=True, summary="random scores through TAR's normalisation"),
-    Weighting("invert", _invert, summary="TAR's emphasis reversed (TAR on the negated losses)"),
+    Weighting("tar", _tar, TARParams, summary="time-adaptive reweighting (Eqs. 3-8)"),
+    Weighting(
+        "shuffle",
+        _shuffle,
+        TARParams,
+        stochastic=True,
+        summary="TAR's weights permuted among a segment's valid steps",
+    ),
+    Weighting("random", _random, TARParams, stochastic=True, summary="random scores through TAR's normalisation"),
+    Weighting("invert", _invert, TARParams, summary="TAR's emphasis reversed (TAR on the negated losses)"),
     Weighting(
         "perturb_high",
         _uniform,
+        PerturbParams,
         perturb="high",
         stochastic=True,
         summary="noise on the expert actions of the steps TAR up-weights, uniform mean",
@@ -375,6 +304,7 @@ for _w in (
     Weighting(
         "perturb_low",
         _uniform,
+        PerturbParams,
         perturb="low",
         stochastic=True,
         summary="noise on the expert actions of the steps TAR down-weights, uniform mean",

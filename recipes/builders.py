@@ -16,7 +16,7 @@ from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.objectives import MixSchedule, TARLoss
 from tar_rl.policies import DataInfo, Policy, build_policy
 
-from .config import DataConfig, EvalConfig, ObjectiveConfig, OptimConfig
+from .config import DataConfig, EvalConfig, ObjectiveConfig, OptimConfig, objective_params
 from .errors import ConfigError
 
 __all__ = [
@@ -70,27 +70,14 @@ def make_policy(policy: Any, info: DataInfo) -> Policy:
 
 
 def make_objective(obj: ObjectiveConfig, steps: int, seed: int, policy: Policy) -> TARLoss:
-    """``TARLoss`` around the head's per-step loss, its schedule in fractions of ``steps`` (``optim.steps``);
-    ``seed`` (the job's) seeds the controls' draws."""
+    """``TARLoss`` around the head's per-step loss with the weighting's parameters (:func:`objective_params`), its
+    schedule in fractions of ``steps`` (``optim.steps``); ``seed`` (the job's) seeds the controls' draws."""
     schedule = MixSchedule(start=round(obj.start * steps), ramp=round(obj.ramp * steps), shape=obj.shape)
     loss = TARLoss(
         policy.loss,
         obj.name,
-        gamma=obj.gamma,
-        w_max=obj.w_max,
-        eps=obj.eps,
-        cap=obj.cap,
-        tilt=obj.tilt,
-        truncate_fraction=obj.truncate_fraction,
-        keyframe_fraction=obj.keyframe_fraction,
-        keyframe_factor=obj.keyframe_factor,
-        focal_beta=obj.focal_beta,
-        dro_eta=obj.dro_eta,
-        dro_bins=obj.dro_bins,
-        gripper_dims=tuple(obj.gripper_dims),
+        params=objective_params(obj),
         schedule=schedule,
-        perturb_fraction=obj.perturb_fraction,
-        perturb_scale=obj.perturb_scale,
         seed=seed,
         loss_key=policy.loss_key,
         compile_weights=obj.compile,

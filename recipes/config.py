@@ -6,9 +6,11 @@ before anything runs. Config groups (``group=option`` on the command line):
 
 * ``objective``: one option per registered weighting (``tar_rl.WEIGHTINGS``: ``uniform``, ``tar``,
   ``shuffle``, ``random``, ``invert``, ``perturb_high``, ``perturb_low``, and the baselines
-  ``tilted``, ``truncate``, ``keyframe``, ``focal``, ``dro_time``), all of type
-  :class:`ObjectiveConfig`; the option sets ``objective.name``. Presets of a weighting's settings
-  (:data:`OBJECTIVE_PRESETS`: ``tar_gentle``) are options of the same group.
+  ``tilted``, ``truncate``, ``keyframe``, ``focal``, ``dro_time``, and the element weightings ``tar_arm``,
+  ``tar_dimnorm``), each of its own config dataclass generated from its parameters' dataclass
+  (:func:`objective_config`: :class:`ObjectiveConfig`'s settings and the weighting's parameters, so
+  ``objective=focal`` has ``focal_beta`` and ``w_max`` and no ``gamma``); the option sets ``objective.name``.
+  Presets of a weighting's settings (:data:`OBJECTIVE_PRESETS`: ``tar_gentle``) are options of the same group.
 * ``policy``: one option per registered head (``tar_rl.policies.POLICIES``), each of its own
   config dataclass.
 * ``data`` (``default``, ``mt10``, ``mt50``), ``eval`` (``default``, ``paper``), ``optim``
@@ -27,6 +29,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
+import inspect
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,6 +55,9 @@ __all__ = [
     "TrainConfig",
     "config_dict",
     "default_config",
+    "objective_config",
+    "objective_params",
+    "objective_section",
     "register_configs",
     "typed_config",
 ]
@@ -71,58 +78,101 @@ DEFAULT_TASKS = (
 
 @dataclass
 class ObjectiveConfig:
-    """How the per-step losses of a segment are reduced (``tar_rl.TARLoss``).
+    """How the per-step losses of a segment are reduced (``tar_rl.TARLoss``): the settings every weighting has.
+
+    Each registered weighting's config (:func:`objective_config`) adds the fields of its parameters'
+    dataclass (``tar_rl.objectives.WEIGHTINGS[name].params``: ``objective=tar`` has TAR's ``gamma``,
+    ``w_max``, ``eps`` and ``cap``, ``objective=focal`` has ``focal_beta`` and ``w_max``, ``objective=uniform``
+    none), with that dataclass's defaults and documentation.
 
     Attributes:
         name: the weighting (``uniform``, ``tar``, a control or a baseline; set by the ``objective=`` option).
-        gamma: softmax temperature on the within-segment z-scores (Eq. 6).
-        w_max: weight cap (Eq. 8); also ``focal``'s exact cap (there it must be >= 1).
-        eps: z-score epsilon (Eq. 5).
-        cap: ``paper`` (Eq. 8 as printed: clip, then renormalise) or ``exact`` (the cap holds exactly).
         start: fraction of ``optim.steps`` trained with the uniform mean before the weighting starts
             (the paper: 20K of 100K steps = 0.2).
         ramp: fraction of ``optim.steps`` over which the mixing weight alpha rises from 0 to 1
             (the paper: 30K of 100K = 0.3); ``start + ramp <= 1``, so that TAR reaches full strength.
         shape: ``linear`` or ``cosine`` ramp.
-        perturb_fraction: for ``perturb_high``/``perturb_low``: fraction of a segment's valid steps perturbed.
-        perturb_scale: for the perturbation controls: std of the Gaussian action noise (action units).
-        tilt: for ``tilted``: the tilt ``t`` > 0 of ``M * softmax(t * loss / mean loss)`` (Li et al., ICLR 2021).
-        truncate_fraction: for ``truncate``: the fraction ``q`` in [0, 1) of a segment's valid steps, by
-            loss from the top, that weigh 0 (``floor(q * M)`` steps; Kang and Hashimoto, ACL 2020).
-        keyframe_fraction: for ``keyframe``: the fraction ``f`` in (0, 1) of a segment's valid steps, by
-            loss from the top, up-weighted (``floor(f * M + 1/2)`` steps, at least 1; after Wen et al., ICML 2021).
-        keyframe_factor: for ``keyframe``: how many times the others' weight those steps get (``K >= 1``).
-        focal_beta: for ``focal``: the exponent ``beta >= 0`` of ``(loss / mean loss) ** beta``.
-        dro_eta: for ``dro_time`` (group DRO over bins of normalised episode time, Sagawa et al., ICLR 2020):
-            the step size ``eta > 0`` of the group weights, ``q_g <- q_g * exp(eta * mean loss of bin g / mean
-            loss of the batch)`` each step, renormalised (0.01: Sagawa et al.'s step size).
-        dro_bins: for ``dro_time``: the number ``G >= 1`` of bins of normalised episode time (the groups).
-        gripper_dims: for ``tar_arm``: the action dims (indices, negative from the end) averaged uniformly
-            while TAR weights the others; default ``[-1]``, the last dim (MetaWorld's gripper).
         compile: ``torch.compile`` the weighting (``tar``, ``invert``, the baselines): ``auto`` (on CUDA with
             triton: a GPU step otherwise pays ~0.5 ms of tiny kernel launches for it), ``always``
             or ``never``. Not part of a run's identity (the weights agree up to float rounding).
     """
 
     name: str = "tar"
-    gamma: float = 1.0
-    w_max: float = 3.0
-    eps: float = 1e-8
-    cap: str = "paper"
     start: float = 0.2
     ramp: float = 0.3
     shape: str = "linear"
-    perturb_fraction: float = 0.25
-    perturb_scale: float = 0.1
-    tilt: float = 1.0
-    truncate_fraction: float = 0.1
-    keyframe_fraction: float = 0.3
-    keyframe_factor: float = 5.0
-    focal_beta: float = 1.0
-    dro_eta: float = 0.01
-    dro_bins: int = 10
-    gripper_dims: list[int] = field(default_factory=lambda: [-1])
     compile: str = "auto"
+
+
+def _config_field(f: dataclasses.Field) -> tuple[str, Any, Any]:
+    """A parameter's field as a config field: a tuple becomes a list (YAML and the command line write lists), a
+    ``Literal`` its value's type."""
+    default = f.default
+    if isinstance(default, tuple):
+        return f.name, list[type(default[0])], field(default_factory=lambda: list(default))
+    return f.name, type(default), field(default=default)
+
+
+@functools.cache
+def objective_config(weighting: str) -> type:
+    """The config dataclass of the registered weighting ``weighting``: :class:`ObjectiveConfig`'s settings, then
+    its parameters' fields (``WEIGHTINGS[weighting].params``) with their defaults. One class per parameters
+    class (``tar``, ``shuffle``, ``random`` and ``invert`` share ``TARParamsConfig``)."""
+    return _params_config(WEIGHTINGS.get(weighting).params)
+
+
+@functools.cache
+def _params_config(params: type) -> type:
+    fields = [_config_field(f) for f in dataclasses.fields(params)]
+    cls = dataclasses.make_dataclass(f"{params.__name__}Config", fields, bases=(ObjectiveConfig,))
+    cls.__module__ = __name__
+    cls.__doc__ = f"``ObjectiveConfig``'s settings and ``{params.__name__}``'s.\n\nAttributes:\n" + "".join(
+        _attributes(klass) for klass in reversed(params.__mro__)
+    )
+    return cls
+
+
+def _attributes(klass: type) -> str:
+    """The ``Attributes:`` entries of ``klass``'s own docstring, indented as in a docstring ("" without any)."""
+    doc = inspect.getdoc(klass) if "__doc__" in vars(klass) and klass.__doc__ else ""
+    if "Attributes:" not in doc:
+        return ""
+    entries = doc.split("Attributes:", 1)[1].split("\n\n")[0]
+    return "".join(f"{line}\n" for line in entries.splitlines() if line.strip())
+
+
+def objective_section(values: dict) -> dict:
+    """An objective section without the parameters of other weightings that hold their defaults.
+
+    A saved config may list every registered weighting's parameters in its objective section (the committed
+    runs' configs do): the ones its weighting does not have, left at their defaults, change nothing it computes
+    and are left out here, so that such a config reads as, and is named as, the run it describes. A parameter of
+    another weighting at another value stays (a typed config refuses it; a run's name keeps it).
+    """
+    name = values.get("name")
+    own = {f.name for f in dataclasses.fields(objective_config(name))} if name in WEIGHTINGS else set(values)
+    return {key: value for key, value in values.items() if key in own or _OTHER_DEFAULTS.get(key, _NONE) != value}
+
+
+_NONE = object()
+#: Every registered weighting's parameters at their defaults, as config values.
+_OTHER_DEFAULTS = {
+    key: value
+    for name in WEIGHTINGS
+    for key, value in dataclasses.asdict(objective_config(name)()).items()
+    if key not in {f.name for f in dataclasses.fields(ObjectiveConfig)}
+}
+
+
+def objective_params(obj: ObjectiveConfig):
+    """The weighting's parameters (``WEIGHTINGS[obj.name].params``) of an objective config; a list becomes a tuple.
+
+    Raises:
+        ValueError: a value out of range, naming the field (the parameters' own check).
+    """
+    params = WEIGHTINGS.get(obj.name).params
+    values = {f.name: getattr(obj, f.name) for f in dataclasses.fields(params)}
+    return params(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
 
 @dataclass
@@ -339,7 +389,8 @@ class TrainConfig:
     """
 
     defaults: list[Any] = field(default_factory=_defaults)
-    objective: ObjectiveConfig = MISSING
+    # Any: each weighting has its own config dataclass (``objective_config(name)``), as each head below.
+    objective: Any = MISSING
     # Any: each head has its own config dataclass (``POLICIES[name].config``).
     policy: Any = MISSING
     data: DataConfig = MISSING
@@ -387,7 +438,7 @@ OBJECTIVE_PRESETS: dict[str, ObjectiveConfig] = {
     # TAR at gamma 0.5, exact cap, w_max 1.5: the setting R3's pre-registered tuning selected (on evaluation seed
     # 2000), 0.78 points above uniform on the final seed (Holm p 0.057) where tar-rl's defaults are 2.05 below
     # (docs/objective.md).
-    "tar_gentle": ObjectiveConfig(name="tar", gamma=0.5, cap="exact", w_max=1.5),
+    "tar_gentle": objective_config("tar")(name="tar", gamma=0.5, cap="exact", w_max=1.5),
 }
 
 
@@ -398,7 +449,7 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name=CONFIG_NAME, node=TrainConfig)
     for name in WEIGHTINGS:
-        cs.store(group="objective", name=name, node=ObjectiveConfig(name=name))
+        cs.store(group="objective", name=name, node=objective_config(name)(name=name))
     for name, node in OBJECTIVE_PRESETS.items():
         cs.store(group="objective", name=name, node=node)
     for name, spec in POLICIES.items():
@@ -413,7 +464,7 @@ def default_config(objective: str, policy: str) -> dict:
     objective=<objective> policy=<policy>`` resolves to). A run's identity is measured against it."""
     presets = {group: options["default"] for group, options in PRESETS.items()}
     head = POLICIES.get(policy).config(name=policy)
-    return config_dict(TrainConfig(objective=ObjectiveConfig(name=objective), policy=head, **presets))
+    return config_dict(TrainConfig(objective=objective_config(objective)(name=objective), policy=head, **presets))
 
 
 def config_dict(cfg: TrainConfig) -> dict:
@@ -425,9 +476,9 @@ def config_dict(cfg: TrainConfig) -> dict:
     return config
 
 
-#: The sections of TrainConfig that are one dataclass each; ``policy`` is the config dataclass of its head.
+#: The sections of TrainConfig that are one dataclass each; ``objective`` is the config dataclass of its weighting
+#: (:func:`objective_config`), ``policy`` that of its head.
 SECTIONS: dict[str, type] = {
-    "objective": ObjectiveConfig,
     "data": DataConfig,
     "eval": EvalConfig,
     "optim": OptimConfig,
@@ -447,7 +498,8 @@ def _node(where: str, cls: type, values: dict) -> Any:
 
 def typed_config(config: dict) -> TrainConfig:
     """The typed config of a plain dict of settings (a composed job's or a run's saved one): each section its
-    dataclass, ``policy`` the config dataclass of the head it names.
+    dataclass, ``objective`` the config dataclass of the weighting it names (other weightings' parameters at their
+    defaults left out, :func:`objective_section`), ``policy`` the config dataclass of the head it names.
 
     Values are taken as they are: their checks are ``tar_rl.recipes.validate.validate``'s, which is how a
     job's typed config is made. Settings the dict lacks take their defaults.
@@ -460,6 +512,11 @@ def typed_config(config: dict) -> TrainConfig:
     name = head.get("name")
     if name not in POLICIES:
         raise ConfigError(f"policy.name={name!r} is not valid; choose one of {list(POLICIES)}")
+    objective = objective_section(values.pop("objective", {}))
+    weighting = objective.get("name", ObjectiveConfig.name)
+    if weighting not in WEIGHTINGS:
+        raise ConfigError(f"objective.name={weighting!r} is not valid; choose one of {list(WEIGHTINGS)}")
     nodes = {key: _node(key, cls, values.pop(key, {})) for key, cls in SECTIONS.items()}
+    nodes["objective"] = _node(f"objective {weighting!r}", objective_config(weighting), objective)
     nodes["policy"] = _node(f"policy {name!r}", POLICIES.get(name).config, head)
     return _node("the config", TrainConfig, {**values, **nodes})

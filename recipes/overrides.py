@@ -16,7 +16,15 @@ from tar_rl.objectives import WEIGHTINGS
 from tar_rl.objectives.registry import did_you_mean
 from tar_rl.policies import POLICIES
 
-from .config import CONFIG_NAME, PRESETS, SECTIONS, TrainConfig, register_configs
+from .config import (
+    CONFIG_NAME,
+    OBJECTIVE_PRESETS,
+    PRESETS,
+    SECTIONS,
+    TrainConfig,
+    objective_config,
+    register_configs,
+)
 from .errors import ConfigError
 from .validate import INT_SETTINGS, int_rule
 
@@ -29,7 +37,7 @@ _KINDS = {"Integer": "an integer", "Float": "a number", "Boolean": "a boolean (t
 def _groups() -> dict[str, list[str]]:
     """Each config group and its options (``group=option`` on the command line)."""
     return {
-        "objective": list(WEIGHTINGS),
+        "objective": [*WEIGHTINGS, *OBJECTIVE_PRESETS],
         "policy": list(POLICIES),
         **{group: list(options) for group, options in PRESETS.items()},
     }
@@ -43,9 +51,16 @@ def _head_settings(head: str) -> set[str]:
     return {f"policy.{name}" for name in _fields(POLICIES.get(head).config)}
 
 
+def _objective_settings(option: str) -> set[str]:
+    """The settings of the ``objective`` option ``option`` (a weighting, or a preset of one)."""
+    node = OBJECTIVE_PRESETS.get(option)
+    return {f"objective.{name}" for name in _fields(type(node) if node is not None else objective_config(option))}
+
+
 def _settings() -> set[str]:
-    """Every setting's dotted name but the policy head's (Hydra's ``defaults`` and ``hydra`` nodes left out)."""
-    scalars = _fields(TrainConfig) - {*SECTIONS, "policy", "init", "defaults", "hydra"}
+    """Every setting's dotted name but the policy head's and the weighting's (Hydra's ``defaults`` and ``hydra``
+    nodes left out)."""
+    scalars = _fields(TrainConfig) - {*SECTIONS, "objective", "policy", "init", "defaults", "hydra"}
     sections = {f"{section}.{name}" for section, cls in SECTIONS.items() for name in _fields(cls)}
     return scalars | sections | {"init.from"}
 
@@ -61,8 +76,9 @@ def _suggest(key: str, names: set[str]) -> str:
     return f" (did you mean {tails[close[0]]!r}?)" if close else ""
 
 
-def _check_key(key: str, heads: list[str]) -> None:
-    """Refuse a key that names no setting; a head's setting must be one of every head chosen (``heads``)."""
+def _check_key(key: str, heads: list[str], objectives: list[str]) -> None:
+    """Refuse a key that names no setting; a head's setting must be one of every head chosen (``heads``), a
+    weighting's one of every objective chosen (``objectives``)."""
     parts = key.split(".")
     name = ".".join(parts[:2])  # a setting's value may be a list or a dict: what lies below it is Hydra's to check
     if parts[0] == "policy" and len(parts) > 1:
@@ -71,8 +87,17 @@ def _check_key(key: str, heads: list[str]) -> None:
             if name not in known:
                 raise ConfigError(f"{key}: the head {head!r} has no such setting{_suggest(name, known)}")
         return
+    if parts[0] == "objective" and len(parts) > 1:
+        for option in objectives:
+            known = _objective_settings(option)
+            if name not in known:
+                owners = [w for w in WEIGHTINGS if name in _objective_settings(w)]
+                hint = f"; it is a setting of objective={'|'.join(owners)}" if owners else _suggest(name, known)
+                raise ConfigError(f"{key}: objective={option} has no such setting{hint}")
+        return
     if name not in _settings():
         known = _settings() | set(_groups()) | {name for head in heads for name in _head_settings(head)}
+        known |= {name for option in objectives for name in _objective_settings(option)}
         raise ConfigError(f"{key}: no such setting{_suggest(key, known)}")
 
 
@@ -152,7 +177,7 @@ def check_overrides(argv: list[str]) -> None:
         else:
             values.append([str(override.value())])
             lines.append([override.input_line])
-    heads = ["mlp"]  # the default head
+    heads, objectives = ["mlp"], ["tar"]  # the default head and weighting
     for override, vals in zip(parsed, values):
         key = override.key_or_group
         if key in groups and vals is not None:
@@ -163,9 +188,11 @@ def check_overrides(argv: list[str]) -> None:
                     raise ConfigError(f"{key}: no option {value!r}{hint}; options: {', '.join(options)}")
             if key == "policy":
                 heads = vals
+            if key == "objective":
+                objectives = vals
     for override in parsed:
         if override.key_or_group not in groups:
-            _check_key(override.key_or_group, heads)
+            _check_key(override.key_or_group, heads, objectives)
     first = [options[0] for options in lines]
     _compose(first)
     for i, options in enumerate(lines):

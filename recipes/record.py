@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import fields
 
 import numpy as np
 import torch
 from tensordict import TensorDict
 
 from tar_rl.data import DemoDataset
-from tar_rl.objectives import TARLoss, window_weights
+from tar_rl.objectives import TARLoss, TARParams, window_weights
 
 __all__ = ["demo_episodes", "record_weights"]
 
@@ -31,14 +32,16 @@ def record_weights(
     rows = []
     was_training = objective.training
     objective.eval()
-    p = objective.weighting_params
+    tar = TARParams(
+        **{f.name: getattr(objective.params, f.name) for f in fields(TARParams) if hasattr(objective.params, f.name)}
+    )
     try:
         with torch.no_grad():
             for task, episode, td in episodes:
                 losses, dims = objective.step_and_dim_losses(td.unsqueeze(0))
                 losses = losses.squeeze(0).float().cpu()
                 if bool(torch.isfinite(losses).all()):
-                    weight = window_weights(losses, slice_len, gamma=p.gamma, w_max=p.w_max, eps=p.eps, cap=p.cap)
+                    weight = window_weights(losses, slice_len, **tar.tar_kwargs())
                 else:
                     weight = torch.full_like(losses, float("nan"))
                 gripper = td["action"][..., -1].float().cpu()

@@ -17,7 +17,7 @@ from tar_rl.runs import (
     load_checkpoint,
 )
 
-from .config import default_config
+from .config import default_config, objective_section
 from .errors import ConfigError
 
 __all__ = [
@@ -33,8 +33,14 @@ __all__ = [
 ]
 
 
+def _own(config: dict) -> dict:
+    """``config`` without other weightings' parameters at their defaults (:func:`objective_section`)."""
+    return {**config, "objective": objective_section(config["objective"])}
+
+
 def with_defaults(saved: dict) -> dict:
-    """A saved config completed with the defaults of settings it does not hold."""
+    """A saved config completed with the defaults of settings it does not hold (other weightings' parameters at
+    their defaults left out)."""
 
     def merge(base: dict, over: dict) -> dict:
         out = dict(base)
@@ -42,18 +48,19 @@ def with_defaults(saved: dict) -> dict:
             out[key] = merge(base[key], value) if isinstance(value, dict) and isinstance(base.get(key), dict) else value
         return out
 
-    return merge(default_config(saved["objective"]["name"], saved["policy"]["name"]), copy.deepcopy(saved))
+    return merge(default_config(saved["objective"]["name"], saved["policy"]["name"]), copy.deepcopy(_own(saved)))
 
 
 def run_name(config: dict) -> str:
     """The run's directory name: ``<objective>-<policy>-s<seed>-<hash>`` (:func:`tar_rl.runs.run_name` measured
-    against the default job of its objective and head)."""
-    return runs.run_name(config, default_config(config["objective"]["name"], config["policy"]["name"]))
+    against the default job of its objective and head; other weightings' parameters at their defaults, which a
+    saved config may list, are not part of it)."""
+    return runs.run_name(_own(config), default_config(config["objective"]["name"], config["policy"]["name"]))
 
 
 def identity(config: dict) -> dict:
     """The settings that make the run differ from the default job (:func:`tar_rl.runs.identity`)."""
-    return runs.identity(config, default_config(config["objective"]["name"], config["policy"]["name"]))
+    return runs.identity(_own(config), default_config(config["objective"]["name"], config["policy"]["name"]))
 
 
 def identity_differences(old: dict, new: dict) -> list[str]:

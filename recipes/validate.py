@@ -5,19 +5,18 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from tar_rl.collectors.suites import SUITES, Suite, suite_for
 from tar_rl.data import DemoDataset
-from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, WeightingParams, check_gripper_dims
+from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, check_gripper_dims
 from tar_rl.policies import DataInfo, Policy
 
 from . import diagnose, post_training
 from .builders import given_dataset, make_objective, make_policy, torch_device
-from .config import DEFAULT_TASKS, ObjectiveConfig, OptimConfig, TrainConfig, typed_config
+from .config import DEFAULT_TASKS, ObjectiveConfig, OptimConfig, TrainConfig, objective_params, typed_config
 from .errors import ConfigError
 
 __all__ = ["INT_SETTINGS", "MAX_LR", "MAX_STEPS", "Job", "check_slice_len", "int_rule", "resolve_config", "validate"]
@@ -168,7 +167,6 @@ def validate(config: dict) -> Job:
 
 def _check_objective(obj: ObjectiveConfig) -> None:
     _check_choice("objective.name", obj.name, list(WEIGHTINGS))
-    _check_choice("objective.cap", obj.cap, ["paper", "exact"])
     _check_choice("objective.shape", obj.shape, ["linear", "cosine"])
     _check_choice("objective.compile", obj.compile, list(COMPILE_MODES))
     if not 0 <= obj.start < 1:
@@ -184,7 +182,10 @@ def _check_objective(obj: ObjectiveConfig) -> None:
             f"objective.start + objective.ramp must be <= 1 (the ramp ends by the last step), got {obj.start} + "
             f"{obj.ramp} = {obj.start + obj.ramp:g}: TAR would never reach full strength; lower one of them"
         )
-    _check_objective_numbers(obj)
+    try:  # the weighting's parameters check themselves; their message names the parameter
+        objective_params(obj)
+    except ValueError as err:
+        raise ConfigError(f"objective.{err}") from None
 
 
 def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset | None, dict]:
@@ -316,45 +317,3 @@ def _check_init(cfg: TrainConfig, policy: Policy, info: DataInfo) -> None:
     except post_training.InitError as err:
         raise ConfigError(str(err)) from None
     init["source"] = source.name
-
-
-def _check_objective_numbers(obj: ObjectiveConfig) -> None:
-    """The weightings' hyper-parameters (``tar_rl.objectives.WeightingParams`` checks the same), named as settings."""
-    if not (math.isfinite(obj.gamma) and obj.gamma > 0):
-        raise ConfigError(f"objective.gamma is a softmax temperature and must be a finite number > 0, got {obj.gamma}")
-    if not obj.w_max > 0:
-        raise ConfigError(f"objective.w_max is a weight cap and must be > 0 (inf: no cap), got {obj.w_max}")
-    if obj.cap == "exact" and obj.w_max < 1:
-        raise ConfigError(
-            f"objective.cap=exact needs objective.w_max >= 1 (weights of mean 1 cannot all lie below 1), "
-            f"got {obj.w_max}"
-        )
-    if obj.name == "focal" and obj.w_max < 1:
-        raise ConfigError(
-            f"objective=focal caps exactly and needs objective.w_max >= 1 (weights of mean 1 cannot all lie "
-            f"below 1), got {obj.w_max}"
-        )
-    if not (math.isfinite(obj.eps) and obj.eps > 0):
-        raise ConfigError(f"objective.eps must be a finite number > 0, got {obj.eps}")
-    baselines = (
-        "tilt",
-        "truncate_fraction",
-        "keyframe_fraction",
-        "keyframe_factor",
-        "focal_beta",
-        "dro_eta",
-        "dro_bins",
-    )
-    try:  # the cap's floor and the baselines' rules live in WeightingParams; its message names the parameter
-        WeightingParams(
-            **{key: getattr(obj, key) for key in baselines},
-            w_max=obj.w_max,
-            cap=obj.cap,
-            gripper_dims=tuple(obj.gripper_dims),
-        )
-    except ValueError as err:
-        raise ConfigError(f"objective.{err}") from None
-    if not 0 <= obj.perturb_fraction <= 1:
-        raise ConfigError(f"objective.perturb_fraction must lie in [0, 1], got {obj.perturb_fraction}")
-    if not (math.isfinite(obj.perturb_scale) and obj.perturb_scale >= 0):
-        raise ConfigError(f"objective.perturb_scale must be a finite number >= 0, got {obj.perturb_scale}")

@@ -15,13 +15,30 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     name: "tar_rl.objectives"
-    for name in ("WEIGHTINGS", "MixSchedule", "TARLoss", "get_weighting", "segment_mean", "tar_weights")
+    for name in ("WEIGHTINGS", "MixSchedule", "TARLoss", "TARParams", "get_weighting", "segment_mean", "tar_weights")
 }
 
-__all__ = ["WEIGHTINGS", "MixSchedule", "TARLoss", "__version__", "get_weighting", "segment_mean", "tar_weights"]
+__all__ = [
+    "WEIGHTINGS",
+    "MixSchedule",
+    "TARLoss",
+    "TARParams",
+    "__version__",
+    "get_weighting",
+    "segment_mean",
+    "tar_weights",
+]
 
 if TYPE_CHECKING:  # pragma: no cover
-    from tar_rl.objectives import WEIGHTINGS, MixSchedule, TARLoss, get_weighting, segment_mean, tar_weights
+    from tar_rl.objectives import (
+        WEIGHTINGS,
+        MixSchedule,
+        TARLoss,
+        TARParams,
+        get_weighting,
+        segment_mean,
+        tar_weights,
+    )
 
 
 def __getattr__(name: str):

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import torch
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+from objective_helpers import tar_loss
 from paths import REPO
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
-from tar_rl import TARLoss
 from tar_rl.cli import main
 from tar_rl.collectors.metaworld import demos, tasks
 from tar_rl.collectors.metaworld.dataset import build_dataset, check_disjoint
@@ -546,7 +546,7 @@ def test_segments_feed_tar_loss(built):
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Linear(39, 32), torch.nn.ReLU(), torch.nn.Linear(32, 4))
     actor = TensorDictModule(net, ["observation"], ["action"])
-    loss = TARLoss(BCLoss(actor, loss_function="mse", reduction="none"))
+    loss = tar_loss(BCLoss(actor, loss_function="mse", reduction="none"))
     batch = ds.segments(8, 64).sample()
     out = loss(batch)
     assert torch.isfinite(out["loss_tar"]) and out["loss_tar"] > 0

@@ -21,6 +21,7 @@ import pytest
 import torch
 import torch.distributed as torch_dist
 import torch.multiprocessing as mp
+from objective_helpers import tar_loss
 from paths import REPO
 from recipe_helpers import compose_config
 from tensordict import TensorDict
@@ -43,8 +44,8 @@ def _objective(weighting: str = "tar", seed: int = 0) -> TARLoss:
     torch.manual_seed(seed)
     net = torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.Tanh(), torch.nn.Linear(16, 2))
     actor = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
-    kwargs = {"dro_eta": 1.0, "dro_bins": 3}  # read by dro_time only
-    return TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), weighting, gamma=1.0, w_max=3.0, **kwargs)
+    params = {"dro_time": {"dro_eta": 1.0, "dro_bins": 3}, "tar": {"gamma": 1.0, "w_max": 3.0}}[weighting]
+    return tar_loss(BCLoss(actor, loss_function="mse", reduction="none"), weighting, **params)
 
 
 def _batch() -> TensorDict:
@@ -79,7 +80,7 @@ def _rank_worker(rank: int, world: int, store_path: str, out_dir: str) -> None:
             out = model(_batch()[rank * share : (rank + 1) * share])
             out["loss_tar"].backward()
             grads = {n: p.grad.clone() for n, p in objective.named_parameters() if p.grad is not None}
-            state = objective.state_dict().get("weighting_state")
+            state = objective.state_dict().get("weighting_state.value")
             results[weighting] = {"loss": out["loss_tar"].detach(), "grads": grads, "state": state}
             del model, out
         torch.save(results, Path(out_dir) / f"rank{rank}.pt")
@@ -131,12 +132,12 @@ def test_two_ranks_give_the_loss_and_gradient_of_the_concatenated_batch(tmp_path
                 continue
             for r in ranks:
                 torch.testing.assert_close(r["grads"][name], p.grad, rtol=1e-5, atol=1e-7)
-    state = singles["dro_time"].weighting_state
+    state = singles["dro_time"].weighting_state.value
     for r in results:
         torch.testing.assert_close(r["dro_time"]["state"], state, rtol=1e-12, atol=1e-12)
     alone = _objective("dro_time")
     alone(_batch()[:4])  # rank 0's share alone would move the group weights elsewhere
-    assert not torch.allclose(alone.weighting_state, state)
+    assert not torch.allclose(alone.weighting_state.value, state)
 
 
 def test_shards_of_an_evaluation_make_the_whole_evaluation():

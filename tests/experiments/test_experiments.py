@@ -350,8 +350,12 @@ def test_ci_pairs_differ_only_in_objective_and_tuning_uses_its_own_eval_seed(ci_
     by_seed = {}
     for c in protocol:
         by_seed.setdefault(c["seed"], {})[c["objective"]["name"]] = c
+    tar_params = {"gamma": 1.0, "w_max": 3.0, "eps": 1e-8, "cap": "paper"}  # tar's own, at their defaults
     for seed in (0, 1):
-        diff = config_differences(by_seed[seed]["uniform"], by_seed[seed]["tar"])
+        tar = by_seed[seed]["tar"]
+        assert {key: tar["objective"][key] for key in tar_params} == tar_params
+        tar = {**tar, "objective": {k: v for k, v in tar["objective"].items() if k not in tar_params}}
+        diff = config_differences(by_seed[seed]["uniform"], tar)
         assert diff == ["objective.name: 'uniform' -> 'tar'"], diff
     tuning = [c for c in configs.values() if c["eval"]["seed"] == 2000]
     assert len(tuning) == 3 and {c["objective"]["name"] for c in tuning} == {"uniform", "tar"}
@@ -401,7 +405,11 @@ def test_scales_pair_objectives_and_paper_scale_is_the_papers_protocol(bench, tm
     specs = bench.stage_specs(one_seed, Planner(one_seed.scale, tmp_path, str(tmp_path)), "protocol")
     assert len(specs) == 2
     a, b = specs[0].config, specs[1].config
-    assert config_differences(a, b) == ["objective.name: 'uniform' -> 'tar'"]
+    # uniform has no parameters and tar has TAR's four, at their defaults: otherwise the pair is the same job
+    tar_params = {"gamma": 1.0, "w_max": 3.0, "eps": 1e-8, "cap": "paper"}
+    assert {key: b["objective"][key] for key in tar_params} == tar_params
+    b_objective = {key: value for key, value in b["objective"].items() if key not in tar_params}
+    assert config_differences(a, {**b, "objective": b_objective}) == ["objective.name: 'uniform' -> 'tar'"]
     assert a["eval"]["seed"] == 1000 and a["optim"]["steps"] == 8000 and len(a["data"]["tasks"]) == 8
     c = Planner(sizes.scale, tmp_path, str(tmp_path)).spec("policy=mlp", "objective=tar").config
     assert c["optim"]["steps"] == 100_000 and c["eval"]["rollouts"] == 50 and c["eval"]["seed"] == 1000

@@ -6,20 +6,21 @@ Every expected value is worked out by hand in the comments or computed here with
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numeric import close, mask, t64
+from objective_helpers import tar_loss
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
 from tar_rl.objectives import (
     WEIGHTINGS,
-    TARLoss,
-    WeightingParams,
     focal_weights,
     keyframe_count,
     keyframe_weights,
@@ -373,18 +374,19 @@ def test_bad_parameters_are_refused_with_their_name(call, named):
     ],
 )
 def test_weighting_params_and_tarloss_refuse_bad_values(field, value):
+    owner = {"tilt": "tilted", "truncate_fraction": "truncate", "focal_beta": "focal"}.get(field, "keyframe")
     with pytest.raises(ValueError, match=rf"^{field} must"):
-        WeightingParams(**{field: value})
+        WEIGHTINGS[owner].params(**{field: value})
     inner = BCLoss(TensorDictModule(torch.nn.Linear(2, 2), ["observation"], ["action"]), reduction="none")
     with pytest.raises(ValueError, match=rf"^{field} must"):
-        TARLoss(inner, "tar", **{field: value})
+        tar_loss(inner, owner, **{field: value})
 
 
 def test_focal_needs_an_exact_cap_of_at_least_one():
     inner = BCLoss(TensorDictModule(torch.nn.Linear(2, 2), ["observation"], ["action"]), reduction="none")
     with pytest.raises(ValueError, match=r"^w_max must be >= 1 for the focal weighting"):
-        TARLoss(inner, "focal", w_max=0.5)
-    TARLoss(inner, "tar", w_max=0.5)  # TAR's paper cap takes any w_max > 0
+        tar_loss(inner, "focal", w_max=0.5)
+    tar_loss(inner, "tar", w_max=0.5)  # TAR's paper cap takes any w_max > 0
 
 
 @pytest.mark.parametrize(
@@ -393,7 +395,7 @@ def test_focal_needs_an_exact_cap_of_at_least_one():
         ("tilted", {"tilt": 2.5}, {"tilt": 2.5}),
         ("truncate", {"truncate_fraction": 0.4}, {"fraction": 0.4}),
         ("keyframe", {"keyframe_fraction": 0.5, "keyframe_factor": 3.0}, {"fraction": 0.5, "factor": 3.0}),
-        ("focal", {"focal_beta": 2.0, "w_max": 1.7, "cap": "paper"}, {"beta": 2.0, "w_max": 1.7}),
+        ("focal", {"focal_beta": 2.0, "w_max": 1.7}, {"beta": 2.0, "w_max": 1.7}),
     ],
 )
 def test_tarloss_passes_the_parameters(name, kwargs, fn_kwargs):
@@ -401,7 +403,7 @@ def test_tarloss_passes_the_parameters(name, kwargs, fn_kwargs):
 
     torch.manual_seed(0)
     actor = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["action"])
-    loss = TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), name, return_weights=True, **kwargs)
+    loss = tar_loss(BCLoss(actor, loss_function="mse", reduction="none"), name, return_weights=True, **kwargs)
     valid = torch.ones(4, 10, dtype=torch.bool)
     valid[1, 6:] = False
     data = TensorDict(
@@ -416,7 +418,7 @@ def test_tarloss_passes_the_parameters(name, kwargs, fn_kwargs):
 
 def test_registered_and_reach_their_parameters():
     losses, valid = t64([[0.5, 2.0, 0.1, 3.0, 1.0], [4.0, 0.2, 1.5, 8.0, 0.0]]), mask([[1] * 5, [1, 1, 1, 0, 0]])
-    params = WeightingParams(
+    params = SimpleNamespace(
         tilt=2.5, truncate_fraction=0.4, keyframe_fraction=0.5, keyframe_factor=3.0, focal_beta=1.5, w_max=1.8
     )
     expected = {
@@ -431,7 +433,7 @@ def test_registered_and_reach_their_parameters():
     for name in BASELINES:
         spec = WEIGHTINGS[name]
         assert spec.name == name and not spec.stochastic and spec.perturb is None and spec.summary
-        close(spec.weights(losses, valid, params, 1.0, None), expected[name], rtol=1e-8)
+        close(spec.weights(losses, valid, _own(name, params), 1.0, None), expected[name], rtol=1e-8)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -453,7 +455,7 @@ def batches(draw):
 
 @st.composite
 def baseline_params(draw):
-    return WeightingParams(
+    return SimpleNamespace(
         tilt=draw(st.sampled_from([0.1, 1.0, 4.0, 30.0])),
         truncate_fraction=draw(st.sampled_from([0.0, 0.1, 0.25, 0.5, 0.9])),
         keyframe_fraction=draw(st.sampled_from([0.05, 0.3, 0.5, 0.95])),
@@ -463,8 +465,14 @@ def baseline_params(draw):
     )
 
 
+def _own(name, values):
+    """The weighting ``name``'s parameters, taken from ``values`` (a namespace holding every baseline's)."""
+    params = WEIGHTINGS[name].params
+    return params(**{f.name: getattr(values, f.name) for f in dataclasses.fields(params)})
+
+
 def _weights(name, losses, valid, params, mix=1.0):
-    return WEIGHTINGS[name].weights(losses, valid, params, mix, None)
+    return WEIGHTINGS[name].weights(losses, valid, _own(name, params), mix, None)
 
 
 @SETTINGS

@@ -13,17 +13,16 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numeric import close, mask, t64
+from objective_helpers import tar_loss
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import BCLoss
 
 from tar_rl.objectives import (
-    DEFAULT_DRO_BINS,
-    DEFAULT_DRO_ETA,
     WEIGHTINGS,
+    DROTimeParams,
     MixSchedule,
     TARLoss,
-    WeightingParams,
     dro_time_weights,
     time_bins,
 )
@@ -128,7 +127,7 @@ class TestHandValues:
     def test_the_registered_weighting_bins_the_steps_itself(self):
         losses, valid, _ = self.inputs()
         spec = WEIGHTINGS["dro_time"]
-        params = WeightingParams(dro_eta=0.5, dro_bins=4)
+        params = DROTimeParams(dro_eta=0.5, dro_bins=4)
         state = spec.initial_state(params)
         close(state.exp(), [0.25] * 4)
         w, log_q = spec.weights(
@@ -215,18 +214,18 @@ class TestHandValues:
 )
 def test_bad_parameters_are_refused_with_their_name(field, value):
     with pytest.raises(ValueError, match=rf"^{field} must"):
-        WeightingParams(**{field: value})
+        DROTimeParams(**{field: value})
     inner = BCLoss(TensorDictModule(torch.nn.Linear(2, 2), ["observation"], ["action"]), reduction="none")
     with pytest.raises(ValueError, match=rf"^{field} must"):
-        TARLoss(inner, "dro_time", **{field: value})
+        tar_loss(inner, "dro_time", **{field: value})
     if field == "dro_eta":
         with pytest.raises(ValueError, match=r"^dro_eta must"):
             dro_time_weights(t64([[1.0]]), mask([[1]]), torch.tensor([[0]]), uniform_log_q(2), eta=value)
 
 
 def test_defaults():
-    assert (DEFAULT_DRO_ETA, DEFAULT_DRO_BINS) == (0.01, 10)
-    params = WeightingParams()
+    assert (DROTimeParams.dro_eta, DROTimeParams.dro_bins) == (0.01, 10)
+    params = DROTimeParams()
     assert (params.dro_eta, params.dro_bins) == (0.01, 10)
     spec = WEIGHTINGS["dro_time"]
     assert spec.reads_time and spec.initial_state is not None and not spec.stochastic and spec.perturb is None
@@ -359,7 +358,7 @@ def make_loss(seed: int = 0, **kwargs) -> TARLoss:
     torch.manual_seed(seed)
     actor = TensorDictModule(torch.nn.Linear(OBS, ACT), ["observation"], ["action"])
     kwargs = {"dro_eta": 0.5, "dro_bins": 4, "return_weights": True, **kwargs}
-    return TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), "dro_time", **kwargs)
+    return tar_loss(BCLoss(actor, loss_function="mse", reduction="none"), "dro_time", **kwargs)
 
 
 def make_batch(seed: int) -> TensorDict:
@@ -388,7 +387,7 @@ class TestInTARLoss:
         assert loss.time_keys == ("step", "episode_length")
         assert {"step", "episode_length"} <= set(loss.in_keys)
         log_q = uniform_log_q(4)
-        close(loss.weighting_state, log_q)
+        close(loss.weighting_state.value, log_q)
         for seed in range(3):
             batch = make_batch(seed)
             out = loss(batch)
@@ -399,51 +398,51 @@ class TestInTARLoss:
                 step_losses, valid, time_bins(batch["step"], batch["episode_length"], 4, valid), log_q, eta=0.5
             )
             torch.testing.assert_close(out["weights"], w)
-            torch.testing.assert_close(loss.weighting_state, log_q)
+            torch.testing.assert_close(loss.weighting_state.value, log_q)
             out["loss_tar"].backward()
         assert not torch.allclose(log_q, uniform_log_q(4))
 
     def test_eval_mode_and_no_grad_leave_the_state(self):
         loss = make_loss()
         loss(make_batch(0))
-        before = loss.weighting_state.clone()
+        before = loss.weighting_state.value.clone()
         train_weights = make_loss()(make_batch(0))["weights"]  # a fresh loss's first step
         with torch.no_grad():
             a = loss(make_batch(1))
         loss.eval()
         b = loss(make_batch(1))
         loss.train()
-        assert torch.equal(loss.weighting_state, before)
+        assert torch.equal(loss.weighting_state.value, before)
         torch.testing.assert_close(a["weights"], b["weights"])
         assert train_weights.shape == a["weights"].shape
         # the weights of an eval-mode call are those of a training step from the same state
         c = loss(make_batch(1))
         torch.testing.assert_close(c["weights"], a["weights"])
-        assert not torch.equal(loss.weighting_state, before)
+        assert not torch.equal(loss.weighting_state.value, before)
 
     def test_state_round_trip_and_exact_continuation(self):
         loss = make_loss()
         for seed in range(3):
             loss(make_batch(seed))["loss_tar"].backward()
         state = loss.state_dict()
-        assert state["weighting_state"].shape == (4,) and state["weighting_state"].dtype == torch.float64
+        assert state["weighting_state.value"].shape == (4,) and state["weighting_state.value"].dtype == torch.float64
         other = make_loss(seed=0)
-        close(other.weighting_state, uniform_log_q(4))
+        close(other.weighting_state.value, uniform_log_q(4))
         other.load_state_dict(state)
-        assert torch.equal(other.weighting_state, loss.weighting_state)
+        assert torch.equal(other.weighting_state.value, loss.weighting_state.value)
         for seed in range(3, 6):
             a, b = loss(make_batch(seed)), other(make_batch(seed))
             assert torch.equal(a["weights"], b["weights"]) and torch.equal(a["loss_tar"], b["loss_tar"])
-        assert torch.equal(other.weighting_state, loss.weighting_state)
+        assert torch.equal(other.weighting_state.value, loss.weighting_state.value)
         # a loss of another size of state refuses it
-        with pytest.raises(RuntimeError, match="weighting_state"):
+        with pytest.raises(RuntimeError, match=r"weighting_state\.value"):
             make_loss(dro_bins=5).load_state_dict(state)
 
     def test_only_a_stateful_weighting_has_the_buffer(self):
         actor = TensorDictModule(torch.nn.Linear(OBS, ACT), ["observation"], ["action"])
         for name in WEIGHTINGS:
-            loss = TARLoss(BCLoss(actor, loss_function="mse", reduction="none"), name)
-            assert ("weighting_state" in loss.state_dict()) == (WEIGHTINGS[name].initial_state is not None)
+            loss = tar_loss(BCLoss(actor, loss_function="mse", reduction="none"), name)
+            assert ("weighting_state.value" in loss.state_dict()) == (WEIGHTINGS[name].initial_state is not None)
             assert ("step" in loss.in_keys) == WEIGHTINGS[name].reads_time
             assert bool(loss.time_keys) == WEIGHTINGS[name].reads_time
 
@@ -453,7 +452,7 @@ class TestInTARLoss:
             out = loss(make_batch(seed))
             valid = make_batch(seed)["collector", "mask"]
             torch.testing.assert_close(out["weights"], valid.float())  # alpha 0: uniform
-        assert not torch.allclose(loss.weighting_state, uniform_log_q(4))  # q learns from the start
+        assert not torch.allclose(loss.weighting_state.value, uniform_log_q(4))  # q learns from the start
         assert float(loss(make_batch(2))["tar_mix"]) == 1.0
 
     @pytest.mark.parametrize("missing", ["step", "episode_length"])

@@ -12,14 +12,14 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from objective_helpers import tar_loss
 from tar_reference import ref_tar_segment
 from tensordict import TensorDict
 from torchrl.objectives import LossModule
 
 from tar_rl.objectives import (
     WEIGHTINGS,
-    TARLoss,
-    WeightingParams,
+    TARArmParams,
     tar_arm_weights,
     tar_dimnorm_weights,
     tar_weights,
@@ -185,7 +185,7 @@ def test_properties(batch, name, mix, cap):
     losses, valid = batch
     losses.requires_grad_(True)
     fn = WEIGHTINGS[name].weights
-    w = fn(losses, valid, WeightingParams(cap=cap), mix, None)
+    w = fn(losses, valid, WEIGHTINGS[name].params(cap=cap), mix, None)
     assert not w.requires_grad
     assert w.shape == losses.shape and (w >= 0).all() and (w[~valid] == 0).all()
     steps = valid.any(-1)
@@ -204,8 +204,8 @@ def test_permuting_the_steps_permutes_the_weights(batch, name, data):
     valid = torch.ones(losses.shape, dtype=torch.bool)
     order = torch.tensor(data.draw(st.permutations(list(range(losses.shape[1])))))
     fn = WEIGHTINGS[name].weights
-    w = fn(losses, valid, WeightingParams(), 1.0, None)
-    torch.testing.assert_close(fn(losses[:, order], valid, WeightingParams(), 1.0, None), w[:, order])
+    w = fn(losses, valid, WEIGHTINGS[name].params(), 1.0, None)
+    torch.testing.assert_close(fn(losses[:, order], valid, WEIGHTINGS[name].params(), 1.0, None), w[:, order])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,7 +245,7 @@ def chunk_batch() -> TensorDict:
 @pytest.mark.parametrize("name", ELEMENT)
 def test_tarloss_equals_the_hand_reduction_in_value_and_gradient(name):
     batch = chunk_batch()
-    loss = TARLoss(ChunkedLoss(), name, return_weights=True, gamma=2.0)
+    loss = tar_loss(ChunkedLoss(), name, return_weights=True, gamma=2.0)
     loss.set_keys(event_valid="action_chunk_valid")
     out = loss(batch)
     out["loss_tar"].backward()
@@ -259,7 +259,7 @@ def test_tarloss_equals_the_hand_reduction_in_value_and_gradient(name):
     valid = batch["collector", "mask"]
     event = batch["action_chunk_valid"][..., None].expand(3, 5, 2, 4)
     full = event & valid[..., None, None]
-    w = WEIGHTINGS[name].weights(elements.detach(), full, WeightingParams(gamma=2.0), 1.0, None)
+    w = WEIGHTINGS[name].weights(elements.detach(), full, WEIGHTINGS[name].params(gamma=2.0), 1.0, None)
     per_step = (w * elements * event).sum((-1, -2)) / event.sum((-1, -2))
     expected = torch.stack([per_step[i][valid[i]].mean() for i in range(3)]).mean()
     expected.backward()
@@ -270,7 +270,7 @@ def test_tarloss_equals_the_hand_reduction_in_value_and_gradient(name):
     torch.testing.assert_close(out["weights"], ((w * event).sum((-1, -2)) / event.sum((-1, -2))) * valid)
     steps = out["weights"]
     torch.testing.assert_close((steps * valid).sum(-1) / valid.sum(-1), torch.ones(3))
-    uniform = TARLoss(ChunkedLoss(), "uniform")
+    uniform = tar_loss(ChunkedLoss(), "uniform")
     uniform.set_keys(event_valid="action_chunk_valid")
     torch.testing.assert_close(out["uniform_loss"], uniform(batch)["uniform_loss"])
 
@@ -284,7 +284,7 @@ def test_an_element_weighting_giving_a_step_one_weight_is_that_step_weighting():
         def forward(self, td):
             return TensorDict({"loss_chunk": super().forward(td)["loss_chunk"][..., :1]}, td.batch_size)
 
-    a, b = TARLoss(OneDim(), "tar_dimnorm"), TARLoss(OneDim(), "tar")
+    a, b = tar_loss(OneDim(), "tar_dimnorm"), tar_loss(OneDim(), "tar")
     for loss in (a, b):
         loss.set_keys(event_valid="action_chunk_valid")
     torch.testing.assert_close(a(batch)["loss_tar"], b(batch)["loss_tar"])
@@ -298,13 +298,13 @@ class TestBadInput:
 
         for name in ELEMENT:
             with pytest.raises(ValueError, match=f"objective '{name}' weights per-element losses.*one loss per step"):
-                TARLoss(PerStep(), name)(chunk_batch())
+                tar_loss(PerStep(), name)(chunk_batch())
 
     def test_nan_at_a_valid_element_is_refused_and_at_padding_ignored(self):
         batch = chunk_batch()
         batch["action_chunk"][2, 4, 0, 0] = float("nan")  # a padded step
         batch["action_chunk"][0, 4, 1, 2] = float("nan")  # a padded chunk entry
-        loss = TARLoss(ChunkedLoss(), "tar_arm")
+        loss = tar_loss(ChunkedLoss(), "tar_arm")
         loss.set_keys(event_valid="action_chunk_valid")
         assert torch.isfinite(loss(batch)["loss_tar"])
         batch["action_chunk"][1, 2, 0, 3] = float("nan")
@@ -314,14 +314,14 @@ class TestBadInput:
     @pytest.mark.parametrize("dims", [(), [-1], (1, 1), (True,), (0.5,)])
     def test_gripper_dims_refused_when_built(self, dims):
         with pytest.raises(ValueError, match="gripper_dims must be a non-empty tuple of distinct ints"):
-            WeightingParams(gripper_dims=dims)
+            TARArmParams(gripper_dims=dims)
         with pytest.raises(ValueError, match="gripper_dims"):
-            TARLoss(ChunkedLoss(), "tar_arm", gripper_dims=dims)
+            tar_loss(ChunkedLoss(), "tar_arm", gripper_dims=dims)
 
     @pytest.mark.parametrize(
         "dims, message", [((4,), "outside the loss's 4 action dims"), ((0, 1, 2, -1), "cover all")]
     )
     def test_gripper_dims_that_do_not_fit_the_loss(self, dims, message):
-        loss = TARLoss(ChunkedLoss(), "tar_arm", gripper_dims=dims)
+        loss = tar_loss(ChunkedLoss(), "tar_arm", gripper_dims=dims)
         with pytest.raises(ValueError, match=message):
             loss(chunk_batch())

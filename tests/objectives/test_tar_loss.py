@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from objective_helpers import tar_loss
 from tar_reference import ref_segment_loss, ref_weights
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
@@ -26,7 +27,7 @@ def make_actor(seed: int = 0) -> TensorDictModule:
 
 
 def make_loss(weighting: str = "tar", seed: int = 0, **kwargs) -> TARLoss:
-    return TARLoss(BCLoss(make_actor(seed), loss_function="mse", reduction="none"), weighting, **kwargs)
+    return tar_loss(BCLoss(make_actor(seed), loss_function="mse", reduction="none"), weighting, **kwargs)
 
 
 def trajectories() -> TensorDict:
@@ -143,7 +144,8 @@ class TestConventions:
         batch = segments.clone()
         before = batch.clone()
         for name in WEIGHTINGS:
-            make_loss(name, perturb_fraction=1.0, perturb_scale=1.0)(batch)
+            perturb = {"perturb_fraction": 1.0, "perturb_scale": 1.0} if WEIGHTINGS[name].perturb else {}
+            make_loss(name, **perturb)(batch)
         assert set(batch.keys(True, True)) == set(before.keys(True, True))
         for key in before.keys(True, True):
             torch.testing.assert_close(batch[key], before[key], equal_nan=True)
@@ -190,7 +192,8 @@ class TestConventions:
 class TestSchedule:
     def test_before_start_every_weighting_is_uniform(self, segments):
         for name in WEIGHTINGS:
-            out = make_loss(name, schedule=MixSchedule(start=5, ramp=5), perturb_scale=1.0)(segments)
+            perturb = {"perturb_scale": 1.0} if WEIGHTINGS[name].perturb else {}
+            out = make_loss(name, schedule=MixSchedule(start=5, ramp=5), **perturb)(segments)
             assert out["tar_mix"].item() == 0.0
             torch.testing.assert_close(out["loss_tar"], out["uniform_loss"])
 
@@ -232,7 +235,7 @@ class TestChunksAndExtras:
             [b, L],
         )
         td["chunk_valid"][..., 0] = True
-        loss = TARLoss(ChunkLoss(), "uniform", return_weights=True)
+        loss = tar_loss(ChunkLoss(), "uniform", return_weights=True)
         loss.set_keys(event_valid="chunk_valid")
         got = loss(td)["loss_tar"]
         err = (td["pred"] - td["target"]).abs().mean(-1)  # [b, L, h]
@@ -245,7 +248,7 @@ class TestChunksAndExtras:
             for i in range(b)
         ]
         assert got.item() == pytest.approx(sum(sum(r) / L for r in per_step) / b, rel=1e-6)
-        plain = TARLoss(ChunkLoss(), "uniform")(td)["loss_tar"]
+        plain = tar_loss(ChunkLoss(), "uniform")(td)["loss_tar"]
         assert plain.item() == pytest.approx(err.mean().item(), rel=1e-6)
 
     def test_dim_losses_are_the_masked_mean_over_the_other_event_dims(self):
@@ -261,14 +264,14 @@ class TestChunksAndExtras:
         )
         valid = torch.tensor([[[True, True, True], [True, True, False]]])
         td = TensorDict({"elements": elements, "chunk_valid": valid}, [1, 2])
-        loss = TARLoss(Given(), "uniform")
+        loss = tar_loss(Given(), "uniform")
         loss.set_keys(event_valid="chunk_valid")
         steps, dims = loss.step_and_dim_losses(td)
         # step 0: dim 0 (1 + 3 + 5) / 3 = 3, dim 1 (10 + 20 + 60) / 3 = 30; step 1: (2 + 6) / 2 = 4, (4 + 8) / 2 = 6
         torch.testing.assert_close(dims, torch.tensor([[[3.0, 30.0], [4.0, 6.0]]]))
         torch.testing.assert_close(steps, torch.tensor([[16.5, 5.0]]))  # the mean over valid elements
         torch.testing.assert_close(steps, loss.step_losses(td))
-        plain = TARLoss(Given(), "uniform")  # no event mask: plain means
+        plain = tar_loss(Given(), "uniform")  # no event mask: plain means
         _, dims = plain.step_and_dim_losses(td[:, :1])
         torch.testing.assert_close(dims, torch.tensor([[[3.0, 30.0]]]))
         per_step = TensorDict({"elements": elements[..., 0, 0]}, [1, 2])  # one loss per step: no dims
@@ -283,7 +286,7 @@ class TestChunksAndExtras:
                 per_step = td["observation"].square().mean(-1)
                 return TensorDict({"loss_main": per_step, "loss_kl": torch.tensor(0.25)}, [])
 
-        out = TARLoss(WithKL(), "uniform", loss_key="loss_main")(segments)
+        out = tar_loss(WithKL(), "uniform", loss_key="loss_main")(segments)
         valid = segments["collector", "mask"]
         steps = segments["observation"].square().mean(-1)
         expected = ((steps * valid).sum(-1) / valid.sum(-1)).mean() + 0.25
@@ -308,7 +311,7 @@ class TestPerturbationControls:
                 seen.append(td["action"].clone())
                 return TensorDict({"loss_x": td["observation"].square().mean(-1) + td["action"].sum(-1) * 0}, [])
 
-        loss = TARLoss(Recorder(), "perturb_high", perturb_fraction=0.5, perturb_scale=1.0)
+        loss = tar_loss(Recorder(), "perturb_high", perturb_fraction=0.5, perturb_scale=1.0)
         out = loss(segments)
         clean, noisy = seen
         changed = (clean != noisy).any(-1)
@@ -388,11 +391,11 @@ class TestBadInput:
 
     def test_reduced_inner_loss(self):
         with pytest.raises(ValueError, match="reduction='none'"):
-            TARLoss(BCLoss(make_actor(), loss_function="mse"))
+            tar_loss(BCLoss(make_actor(), loss_function="mse"))
 
     def test_inner_not_a_loss_module(self):
         with pytest.raises(TypeError, match="LossModule"):
-            TARLoss(nn.Linear(2, 2))
+            tar_loss(nn.Linear(2, 2))
 
     def test_bad_hyper_parameters(self):
         with pytest.raises(ValueError, match="gamma"):
@@ -408,14 +411,19 @@ class TestBadInput:
         class TwoLosses(LossModule):
             reduction = "none"
 
+            def __init__(self):
+                super().__init__()
+                self.scale = nn.Parameter(torch.ones(()))
+
             def forward(self, td):
-                x = td["observation"].mean(-1)
+                x = td["observation"].mean(-1) * self.scale
                 return TensorDict({"loss_a": x, "loss_b": x}, [])
 
         with pytest.raises(ValueError, match="loss_key"):
-            TARLoss(TwoLosses())(segments)
+            tar_loss(TwoLosses())(segments)
+        # a differentiable per-step extra loss would have to be weighted: refused
         with pytest.raises(ValueError, match="must be scalars"):
-            TARLoss(TwoLosses(), loss_key="loss_a")(segments)
+            tar_loss(TwoLosses(), loss_key="loss_a")(segments)
 
     def test_compacted_inner_output(self, segments):
         inner = BCLoss(make_actor(), loss_function="mse", reduction="none")
@@ -423,7 +431,7 @@ class TestBadInput:
         batch = segments.clone()
         batch["pad"] = ~batch["collector", "mask"]
         with pytest.raises(ValueError, match="pad_mask"):
-            TARLoss(inner)(batch)
+            tar_loss(inner)(batch)
 
 
 class TestCompile:

@@ -21,7 +21,7 @@ import tar_rl
 from tar_rl.objectives import MixSchedule, mix_at
 from tar_rl.objectives.weighting import (
     WEIGHTINGS,
-    WeightingParams,
+    TARParams,
     get_weighting,
     invert_weights,
     perturb_mask,
@@ -666,7 +666,8 @@ def test_unknown_weighting_lists_names():
 @pytest.mark.parametrize("name", NAMES)
 def test_every_weighting_is_a_unit_mean_weighting(name):
     losses, valid = padded_batch()
-    spec, params = WEIGHTINGS[name], WeightingParams()
+    spec = WEIGHTINGS[name]
+    params = spec.params()
     if spec.elementwise:  # per-element losses [B, L, 2] (the second dim doubled), reduced to step weights
         elements = torch.stack([losses, 2 * losses], -1)
         element_valid = valid[..., None].expand_as(elements)
@@ -694,7 +695,7 @@ def test_every_weighting_is_a_unit_mean_weighting(name):
 
 def test_registered_tar_matches_reference_with_params():
     losses, valid = padded_batch(torch.float64)
-    params = WeightingParams(gamma=2.0, w_max=1.5, cap="exact")
+    params = TARParams(gamma=2.0, w_max=1.5, cap="exact")
     w = WEIGHTINGS["tar"].weights(losses, valid, params, 0.8, None)
     close(w, ref_tar(losses, valid, gamma=2.0, w_max=1.5, cap="exact", mix=0.8), rtol=2e-6)
 

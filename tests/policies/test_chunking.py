@@ -11,10 +11,10 @@ import pickle
 
 import pytest
 import torch
+from objective_helpers import tar_loss
 from tensordict import TensorDict
 from torch import nn
 
-from tar_rl import TARLoss
 from tar_rl.objectives import perturb_target
 from tar_rl.policies import POLICIES
 from tar_rl.policies.chunking import ChunkedActor, ChunkedHeadConfig, ChunkLoss
@@ -176,7 +176,7 @@ def test_chunk_loss_passes_what_the_model_lists_and_returns_its_loss_and_extras(
 
 
 def test_the_objective_corrupts_the_declared_target():
-    objective = TARLoss(ChunkLoss(_Chunker(), "loss_toy"), "perturb_high", loss_key="loss_toy")
+    objective = tar_loss(ChunkLoss(_Chunker(), "loss_toy"), "perturb_high", loss_key="loss_toy")
     assert objective.tensor_keys.action == "action_chunk"
     data = _segments()
     chosen = torch.tensor([[False, True]])

@@ -14,10 +14,10 @@ import pickle
 import pandas as pd
 import pytest
 import torch
+from objective_helpers import tar_loss
 from recipe_helpers import tiny
 from tensordict import TensorDict
 
-from tar_rl import TARLoss
 from tar_rl.policies import POLICIES, ACTConfig, DataInfo, build_policy
 from tar_rl.recipes import policy_from_checkpoint, train
 from tar_rl.runs import load_checkpoint
@@ -63,7 +63,7 @@ def batch_1x2():
 
 
 def objective(policy, weighting="uniform"):
-    loss = TARLoss(policy.loss, weighting, loss_key=policy.loss_key)
+    loss = tar_loss(policy.loss, weighting, loss_key=policy.loss_key)
     loss.set_keys(event_valid=policy.event_valid)
     return loss
 
@@ -86,7 +86,7 @@ def test_registered_with_the_per_step_loss_and_chunk_mask():
     assert policy.loss_key == "loss_chunk" and policy.event_valid == "action_chunk_valid"
     assert {"observation", "task_id", "action_chunk", "action_chunk_valid"} <= set(policy.keys)
     # the perturbation controls corrupt the target the head learns from: the chunk
-    assert TARLoss(policy.loss, "perturb_high", loss_key="loss_chunk").tensor_keys.action == "action_chunk"
+    assert tar_loss(policy.loss, "perturb_high", loss_key="loss_chunk").tensor_keys.action == "action_chunk"
 
 
 def test_l1_per_step_loss_is_the_valid_horizon_average():

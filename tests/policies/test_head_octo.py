@@ -16,9 +16,9 @@ from datetime import timedelta
 import pandas as pd
 import pytest
 import torch
+from objective_helpers import tar_loss
 from tensordict import TensorDict
 
-from tar_rl import TARLoss
 from tar_rl.collectors.metaworld.tasks import INSTRUCTIONS, TASKS
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.diffusion import (
@@ -147,7 +147,7 @@ def test_per_step_loss_is_per_chunk_element_and_never_reduced(name):
     (key,) = [k for k in out.keys() if k.startswith("loss_")]
     assert out[key].shape == (3, 5, H, A)
     # through TARLoss: a scalar, finite, and gradients reach every parameter
-    loss = TARLoss(policy.loss, "tar")
+    loss = tar_loss(policy.loss, "tar")
     loss.set_keys(event_valid=policy.event_valid)
     total = loss(batch)["loss_tar"]
     total.backward()
@@ -159,7 +159,7 @@ def test_per_step_loss_is_per_chunk_element_and_never_reduced(name):
 def test_perturbation_controls_corrupt_the_chunk_the_head_learns_from(control):
     torch.manual_seed(0)
     policy = build_policy(small("octo_linear"), INFO)
-    loss = TARLoss(policy.loss, control, perturb_fraction=0.5, perturb_scale=0.3)
+    loss = tar_loss(policy.loss, control, perturb_fraction=0.5, perturb_scale=0.3)
     loss.set_keys(event_valid=policy.event_valid)
     assert loss.tensor_keys.action == "action_chunk"
     batch = segment_batch()
@@ -472,7 +472,7 @@ def test_bf16_autocast_forward_and_backward_on_cpu(name):
 def test_cuda_bf16_autocast_training_step_and_sampling(name):
     torch.manual_seed(0)
     policy = build_policy(small(name), INFO)
-    objective = TARLoss(policy.loss, "tar").cuda()
+    objective = tar_loss(policy.loss, "tar").cuda()
     objective.set_keys(event_valid=policy.event_valid)
     with torch.autocast("cuda", dtype=torch.bfloat16):
         out = objective(segment_batch().cuda())
@@ -510,7 +510,7 @@ def test_ddp_without_unused_parameters_trains_two_steps(tmp_path, name):
     try:
         torch.manual_seed(0)
         policy = build_policy(small(name), INFO)
-        objective = TARLoss(policy.loss, "tar")
+        objective = tar_loss(policy.loss, "tar")
         objective.set_keys(event_valid=policy.event_valid)
         model = DistributedDataParallel(objective, find_unused_parameters=False)
         optimizer = torch.optim.AdamW(objective.parameters(), lr=1e-3)

@@ -24,7 +24,7 @@ from tar_rl import TARLoss
 from tar_rl.collectors.metaworld.tasks import TASKS
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.recipes import make_objective, train
-from tar_rl.recipes.config import ObjectiveConfig
+from tar_rl.recipes.config import objective_config
 
 HEADS = sorted(POLICIES)
 B, L, H, K = 4, 16, 8, 2
@@ -37,7 +37,7 @@ def _head(name: str, seed: int = 0):
 
 
 def _objective(policy, weighting: str = "uniform") -> TARLoss:
-    return make_objective(ObjectiveConfig(name=weighting, start=0.0, ramp=0.0), 100, 0, policy)
+    return make_objective(objective_config(weighting)(name=weighting, start=0.0, ramp=0.0), 100, 0, policy)
 
 
 def _batch(seed: int = 0) -> TensorDict:

@@ -25,7 +25,7 @@ from tar_rl.collectors.metaworld.evaluate import RolloutPool, evaluate
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.common import ConvEncoder
 from tar_rl.recipes import make_objective, offline_bc, policy_from_checkpoint, train
-from tar_rl.recipes.config import ObjectiveConfig
+from tar_rl.recipes.config import objective_config
 from tar_rl.runs import load_checkpoint
 
 S = 32
@@ -164,7 +164,7 @@ def test_every_head_on_images_reads_pixels_and_proprioception_only(name):
     other["pixels"] = 255 - other["pixels"]
     assert not torch.allclose(act(other), base)
     # Training: the per-step loss reads the same inputs, and the conv encoder learns.
-    objective = make_objective(ObjectiveConfig(start=0.0, ramp=0.0), 10, 0, policy).train()
+    objective = make_objective(objective_config("tar")(start=0.0, ramp=0.0), 10, 0, policy).train()
     segments = _image_segments()
 
     def step_losses(td):

@@ -74,7 +74,8 @@ def test_the_limits_themselves_are_accepted():
         (
             "objective=tarr",
             "tar-rl train: objective: no option 'tarr' (did you mean 'tar'?); options: uniform, tar, shuffle, random, "
-            "invert, perturb_high, perturb_low, tilted, truncate, keyframe, focal, dro_time, tar_arm, tar_dimnorm",
+            "invert, perturb_high, perturb_low, tilted, truncate, keyframe, focal, dro_time, tar_arm, tar_dimnorm, "
+            "tar_gentle",
         ),
         (
             "policy=mpl",
