@@ -61,16 +61,22 @@ def test_a_started_record_is_written_once_and_a_change_refused(tmp_path):
     assert json.loads(path.read_text()) == {"R4": "abc", "R5": "def"}
 
 
-def test_r4s_plan_is_the_one_its_runs_started_with():
-    """The digest recorded when R4's first run started (``chunked_started.json``) is what the study plans."""
+def _chunked_digest(label: str) -> str:
     sizes = regimes.SIZES["cpu"]
     planner = Planner(sizes.scale, COMMITTED, "datasets")
-    stage = regimes.chunked_stage(sizes, "R4")
+    stage = regimes.chunked_stage(sizes, label)
     overrides = {a.name: [SimpleNamespace(overrides=planner.overrides(*stage.overrides(a, s))) for s in stage.seeds]
                  for a in stage.arms}  # fmt: skip
+    return plan_digest(overrides)
+
+
+def test_the_chunked_plans_are_the_ones_their_runs_started_with():
+    """The digests recorded when R4's and R5's first runs started (``chunked_started.json``, written by the study
+    commit's code) are what the study plans."""
     recorded = json.loads((COMMITTED / "chunked_started.json").read_text())
-    assert recorded == {"R4": "519e5635200b4c2a"}
-    assert plan_digest(overrides) == recorded["R4"] == PLANNED["regimes"]["cpu"]["r4_digest"]
+    assert recorded == {"R4": "519e5635200b4c2a", "R5": "aaf63c1da10507c5"}
+    assert _chunked_digest("R4") == recorded["R4"] == PLANNED["regimes"]["cpu"]["r4_digest"]
+    assert _chunked_digest("R5") == recorded["R5"]
 
 
 def test_the_command_line_refuses_bad_input_naming_it(tmp_path):
