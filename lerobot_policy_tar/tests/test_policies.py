@@ -94,7 +94,7 @@ def test_tar_settings_have_the_names_and_defaults_of_tar_rls_objective():
 def test_tar_fields_out_of_range_are_refused_with_their_name(field, value, message):
     if message is None:
         TARSettings(**{field: value}).validate()
-        with pytest.raises(ValueError, match="cap='exact' needs w_max >= 1"):
+        with pytest.raises(ValueError, match="w_max >= 1 is needed by cap='exact'"):
             TARSettings(**{field: value, "cap": "exact"}).validate()
         return
     with pytest.raises(ValueError, match=message):
