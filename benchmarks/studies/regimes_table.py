@@ -133,16 +133,15 @@ def chunked_loaded(ctx: Context, label: str, complete: bool) -> tuple[dict, list
     return loaded, missing
 
 
-def overall_success(run) -> float:
-    """A run's overall final success, in %."""
-    final = run.final
-    return 100 * float(final[final["level"] == "overall"]["success"].iloc[0])
-
-
 def by_device(label: str, loaded: dict) -> list[dict]:
     """The paired differences in overall success of each TAR arm of a chunked-heads regime, averaged over the
     seeds trained on each kind of device (``summary.json``'s ``machine.device``: ``cpu`` or the GPU's name).
     Descriptive, no test: PLAN.md's deviation for seeds trained on a lent GPU machine."""
+    from tar_rl.report import run_percent
+
+    def overall_success(run) -> float:
+        return run_percent(run)[("success", "overall")]
+
     device = [(r.summary.get("machine") or {}).get("device", "unknown") for r in loaded[BASELINE]]
     uniform = [overall_success(r) for r in loaded[BASELINE]]
     rows = []

@@ -365,7 +365,8 @@ def test_committed_tables_equal_what_the_table_command_computes(tmp_path):
 
 
 def _device_run(seed: int, success: float, device: str) -> SimpleNamespace:
-    final = pd.DataFrame([{"level": "overall", "success": success}, {"level": "group", "success": 0.0}])
+    rows = [("overall", "overall", success), ("group", "easy", 0.0)]
+    final = pd.DataFrame([{"level": lv, "name": n, "success": v, "fast20": 0.0, "neps": 0.0} for lv, n, v in rows])
     return SimpleNamespace(seed=seed, final=final, summary={"machine": {"device": device}})
 
 
