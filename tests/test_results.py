@@ -33,8 +33,9 @@ BEFORE_BUDGET_RUNS = 175
 
 def reads_weights(rel: str, config: dict) -> bool:
     """Whether an analysis reads the committed run ``rel``'s weights (the budget's list, stated by hand):
-    ``r3_diagnosis.py`` reads every R3 run (the MLP on MT50, 50 demonstrations, 3,743 steps: uniform and tar, every
-    seed); R4 and R5 (the ``act`` and ``flow`` heads) keep seed 0 of each arm, whose weights ``tar-rl report`` draws."""
+    the R3 diagnosis (``python -m benchmarks.analysis diagnosis``) reads every R3 run (the MLP on MT50, 50
+    demonstrations, 3,743 steps: uniform and tar, every seed); R4 and R5 (the ``act`` and ``flow`` heads) keep
+    seed 0 of each arm, whose weights ``tar-rl report`` draws."""
     if not rel.startswith("regimes/runs/"):
         return False
     head = config["policy"]["name"]

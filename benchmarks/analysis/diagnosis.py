@@ -289,7 +289,7 @@ def diagnosis_markdown(pairs: Pairs, phases, switches, tasks, corr, dims_section
         "# R3 diagnosis: where TAR's weight goes and which tasks it helps",
         "",
         f"From the {len(pairs.runs)} committed R3 pairs (uniform / TAR: {'; '.join(names.values())}), "
-        "computed by `python benchmarks/r3_diagnosis.py`. Weights are TAR's weights at full strength on the "
+        "computed by `python -m benchmarks.analysis diagnosis`. Weights are TAR's weights at full strength on the "
         f"per-step losses of 3 recorded training demonstrations per task, at training step {pairs.steps['full']} "
         f"(TAR reaches full strength) and {pairs.steps['last']} (the last). The uniform runs' weights are what TAR "
         "would weigh on the uniform policy's losses (the reference).",

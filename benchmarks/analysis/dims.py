@@ -397,7 +397,7 @@ def dims_markdown(pairs: Pairs, groups: pd.DataFrame, deciles: pd.DataFrame) -> 
         "",
         f"Each step's loss split over MetaWorld's action dims (x, y, z, gripper), along the same recorded "
         f"demonstrations (3 per task), from the final checkpoints of the {seeds} pairs at step {pairs.steps['last']}: "
-        "`python benchmarks/r3_diagnosis.py dims --from DIR` rebuilds each run's policy and objective from its "
+        "`python -m benchmarks.analysis dims --from DIR` rebuilds each run's policy and objective from its "
         "checkpoint and config and records again: the loss, weight and gripper action equal the runs' own at that "
         f"step (checked, to a relative {RECOMPUTE_RTOL:g}), with each dim's loss beside them (`dims.csv.gz`). "
         f"Step {pairs.steps['full']}, where TAR reaches full strength, is not analysed per dimension: no checkpoint "
