@@ -10,7 +10,10 @@ numbers tell them apart:
   trained on;
 * :func:`alignment`: over bins of normalised episode time, the rank correlation between TAR's mean
   weight on the training demonstrations and the mean held-out per-step loss. Positive: TAR
-  emphasises the moments where the policy generalises worst; 0: unrelated; negative: the opposite.
+  emphasises the moments where the policy generalises worst; 0: unrelated; negative: the opposite;
+* :func:`within_segment_correlation` and :func:`top_step_agreement`: how alike two draws of a stochastic
+  per-step loss (a flow head's sampled time and noise, ACT's sampled latent) order the steps of the same
+  segments, which is all TAR's within-segment z-score reads.
 
 Tables of per-step values (:data:`STEP_COLUMNS`) hold one row per step of a whole demonstration:
 ``episode`` (an id), ``t`` (its step index), ``length`` (the episode's length ``T``), ``value`` and
@@ -36,6 +39,8 @@ __all__ = [
     "rank_correlation",
     "tail_mean",
     "time_bins",
+    "top_step_agreement",
+    "within_segment_correlation",
 ]
 
 STEP_COLUMNS = ("episode", "t", "length", "value", "gripper")
@@ -131,3 +136,53 @@ def alignment(train_weights: pd.DataFrame, heldout_losses: pd.DataFrame, bins: i
         "weight_by_bin": plain(w),
         "heldout_loss_by_bin": plain(loss),
     }
+
+
+def _segment_pairs(a, b, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``a``, ``b`` as float arrays ``[N, L]`` and ``valid`` as bool, checked; rows with fewer than two valid steps
+    are left out (their steps have no within-segment order)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    valid = np.asarray(valid)
+    if valid.dtype != np.bool_:
+        raise TypeError(f"valid must be a bool mask (True = real step), got dtype {valid.dtype}")
+    if not (a.shape == b.shape == valid.shape) or a.ndim != 2:
+        raise ValueError(f"a, b and valid must share one [N, L] shape, got {a.shape}, {b.shape}, {valid.shape}")
+    if not (np.isfinite(a[valid]).all() and np.isfinite(b[valid]).all()):
+        raise ValueError("a and b must be finite at every valid step")
+    keep = valid.sum(axis=1) >= 2
+    return a[keep], b[keep], valid[keep]
+
+
+def within_segment_correlation(a, b, valid) -> float:
+    """Pearson correlation of two draws ``a`` and ``b`` of per-step values over the same segments, each draw's
+    segment mean removed first: how much of the within-segment variation the draws share.
+
+    Args:
+        a, b: ``[N, L]`` values (e.g. per-step losses of one policy on the same ``N`` segments under two random
+            draws); only valid steps are read.
+        valid: ``[N, L]`` bool, ``True`` on real steps. A segment with fewer than two valid steps is left out.
+
+    Returns:
+        ``1`` when the draws differ by at most a per-segment offset and a common positive scale; about
+        ``var(s) / (var(s) + var(e))`` when each draw is a shared within-segment signal ``s`` plus independent
+        noise ``e``; ``nan`` when either side has no within-segment variation.
+    """
+    a, b, valid = _segment_pairs(a, b, valid)
+    n = valid.sum(axis=1, keepdims=True)
+    da = np.where(valid, a - np.where(valid, a, 0.0).sum(axis=1, keepdims=True) / np.maximum(n, 1), 0.0)
+    db = np.where(valid, b - np.where(valid, b, 0.0).sum(axis=1, keepdims=True) / np.maximum(n, 1), 0.0)
+    denom = math.sqrt(float((da**2).sum() * (db**2).sum()))
+    return float((da * db).sum() / denom) if denom > 0 else math.nan
+
+
+def top_step_agreement(a, b, valid) -> float:
+    """Fraction of segments whose largest valid value falls on the same step in both draws (``[N, L]`` values,
+    ``valid`` as :func:`within_segment_correlation`; ties go to the first step). Chance level is about
+    ``1 / L`` for unrelated draws of segments of ``L`` valid steps; ``nan`` without a segment of two valid
+    steps."""
+    a, b, valid = _segment_pairs(a, b, valid)
+    if not len(a):
+        return math.nan
+    top_a = np.where(valid, a, -np.inf).argmax(axis=1)
+    top_b = np.where(valid, b, -np.inf).argmax(axis=1)
+    return float((top_a == top_b).mean())

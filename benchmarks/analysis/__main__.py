@@ -1,11 +1,12 @@
-"""``python -m benchmarks.analysis diagnosis [...] | dims --from DIR [...]``: R3 diagnosed (:mod:`.diagnosis`) and
-its per-action-dimension recording (:mod:`.dims`)."""
+"""``python -m benchmarks.analysis diagnosis [...] | dims --from DIR [...] | noise --from DIR [...]``: R3 diagnosed
+(:mod:`.diagnosis`), its per-action-dimension recording (:mod:`.dims`), and how much of TAR's weighting a head's
+random draw decides (:mod:`.noise`)."""
 
 import sys
 
-from benchmarks.analysis import diagnosis, dims
+from benchmarks.analysis import diagnosis, dims, noise
 
-COMMANDS = {"diagnosis": diagnosis.main, "dims": dims.dims_main}
+COMMANDS = {"diagnosis": diagnosis.main, "dims": dims.dims_main, "noise": noise.noise_main}
 if len(sys.argv) < 2 or sys.argv[1] not in COMMANDS:
     raise SystemExit(f"usage: python -m benchmarks.analysis {' | '.join(COMMANDS)} [options]")
 raise SystemExit(COMMANDS[sys.argv[1]](sys.argv[2:]))

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW, Pairs, load_pairs
+from benchmarks.analysis.rebuild import rebuild_final
 from benchmarks.studies.regimes import BASELINE, TREATMENT
 from benchmarks.studies.writers import fmt_num
 from tar_rl.report import Run
@@ -45,59 +46,6 @@ RECOMPUTE_RTOL = 1e-5
 # -- Per action dimension: recording the final checkpoints ------------------------------------------
 
 
-def _read_checkpoint(path: Path) -> dict:
-    """A run's final checkpoint as saved, of any checkpoint format (R3's are of format 1: their ``data_info``
-    lacks the task instructions, which the MLP head with a task embedding does not read)."""
-    import torch
-
-    if not path.is_file():
-        raise SystemExit(f"dims: no checkpoint at {path} (the per-dimension losses need the final policy)")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    missing = [k for k in ("config", "data_info", "objective", "step", "finished") if k not in state]
-    if missing:
-        raise SystemExit(f"dims: {path} is not a training checkpoint (no {', '.join(missing)})")
-    return state
-
-
-def _training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict):
-    """The run's training dataset under ``root``, opened by :func:`tar_rl.data.load_dataset` (every check of a
-    dataset; nothing written).
-
-    The dataset is the folder whose metadata names the run's tasks, demonstrations per task, seed, chunk
-    horizon and history; its observation statistics must equal the checkpoint's (the data the policy was
-    trained on). A dataset of a format the package no longer reads is refused with how to build it again (the
-    scripted demonstrations of a seed are the same, which the statistics check confirms).
-    """
-    import json
-
-    from tar_rl.data import DatasetError, load_dataset
-
-    wanted = {
-        "tasks": list(tasks),
-        "n_demos": cfg.data.n_demos,
-        "seed": cfg.data.seed,
-        "chunk_horizon": cfg.data.chunk_horizon,
-        "history": cfg.data.history,
-    }
-    found = []
-    for meta_path in sorted(root.glob("*/metadata.json")):
-        metadata = json.loads(meta_path.read_text())
-        if all(metadata.get(k) == v for k, v in wanted.items()):
-            found.append(meta_path.parent)
-    if len(found) != 1:
-        raise SystemExit(
-            f"dims: {len(found)} datasets under {root} have the settings {wanted} (one is needed); "
-            "name the folder holding the runs' training data with --data"
-        )
-    try:
-        demos = load_dataset(found[0])
-    except DatasetError as err:
-        raise SystemExit(f"dims: {err}") from None
-    if list(demos.metadata["stats"]["observation"]["mean"]) != list(info["obs_mean"]):
-        raise SystemExit(f"dims: {found[0]} holds other data than the checkpoint was trained on")
-    return demos
-
-
 def record_dims(run: Run, data_root: Path | None = None, demos: dict | None = None) -> pd.DataFrame:
     """The run's recording at its last step rebuilt from its final checkpoint, with each action dim's loss.
 
@@ -111,32 +59,11 @@ def record_dims(run: Run, data_root: Path | None = None, demos: dict | None = No
             gripper actions that differ from the run's ``weights.csv`` at the last step (beyond
             :data:`RECOMPUTE_RTOL`).
     """
-    import torch
+    from tar_rl.recipes.record import record_weights
+    from tar_rl.runs import weights_columns
 
-    from tar_rl.policies import DataInfo
-    from tar_rl.recipes.builders import make_objective, make_policy
-    from tar_rl.recipes.record import demo_episodes, record_weights
-    from tar_rl.recipes.rundir import with_defaults
-    from tar_rl.recipes.validate import validate
-    from tar_rl.runs import CHECKPOINT, weights_columns
-
-    state = _read_checkpoint(run.path / CHECKPOINT)
-    config = with_defaults(state["config"])
-    config["init"] = {"from": None}  # rebuilding needs neither a post-training source nor held-out data
-    config["diagnostics"]["heldout_demos"] = 0
-    job = validate(config)
-    cfg = job.config
-    if not state["finished"] or state["step"] != cfg.optim.steps:
-        raise SystemExit(f"dims: {run.path} holds step {state['step']} of {cfg.optim.steps}, not the final one")
-    torch.manual_seed(cfg.seed)
-    policy = make_policy(cfg.policy, DataInfo.from_dict(state["data_info"]))
-    objective = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
-    objective.load_state_dict(state["objective"])
-    root = Path(data_root or cfg.data.root)
-    demos = {} if demos is None else demos
-    if root not in demos:
-        demos[root] = _training_demos(root, cfg, job.train_tasks, state["data_info"])
-    episodes = demo_episodes(demos[root], job.train_tasks, cfg.logging.record_episodes, policy.keys, "cpu")
+    rebuilt = rebuild_final(run, data_root, {} if demos is None else demos, "dims")
+    objective, cfg, episodes = rebuilt.objective, rebuilt.cfg, rebuilt.episodes
     rows = record_weights(objective, episodes, cfg.data.slice_len, cfg.optim.steps)
     df = pd.DataFrame(rows, columns=weights_columns(len(rows[0])))
     _check_recomputed(run, df, cfg.optim.steps)

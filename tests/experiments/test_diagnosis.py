@@ -17,6 +17,7 @@ from run_helpers import write_run
 from benchmarks.analysis import diagnosis as diag
 from benchmarks.analysis import dims as dims_module
 from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW
+from benchmarks.analysis.rebuild import training_demos
 from tar_rl.report import phases
 
 COMMITTED = REPO / "benchmarks" / "results" / "regimes" / "diagnosis"
@@ -282,15 +283,15 @@ def test_committed_per_dimension_recording_agrees_with_the_committed_runs(commit
 
 
 def test_the_training_data_is_opened_by_load_dataset_and_an_old_format_refused(tmp_path):
-    """dims finds the run's dataset by its settings and opens it with tar_rl.data.load_dataset, which refuses a
+    """The analyses find the run's dataset by its settings and opens it with tar_rl.data.load_dataset, which refuses a
     format it no longer reads (R3's datasets were of format 2) with how to build it again."""
     from types import SimpleNamespace
 
     settings = {"tasks": ["reach-v3"], "n_demos": 2, "seed": 0, "chunk_horizon": 1, "history": 1}
     cfg = SimpleNamespace(data=SimpleNamespace(**{k: v for k, v in settings.items() if k != "tasks"}))
     with pytest.raises(SystemExit, match="0 datasets under"):
-        dims_module._training_demos(tmp_path, cfg, ("reach-v3",), {"obs_mean": [0.0]})
+        training_demos(tmp_path, cfg, ("reach-v3",), {"obs_mean": [0.0]}, "dims")
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / "metadata.json").write_text(json.dumps({**settings, "format_version": 2}))
     with pytest.raises(SystemExit, match=r"format version 2, which this tar-rl no longer reads.*build it again"):
-        dims_module._training_demos(tmp_path, cfg, ("reach-v3",), {"obs_mean": [0.0]})
+        training_demos(tmp_path, cfg, ("reach-v3",), {"obs_mean": [0.0]}, "dims")

@@ -1,0 +1,195 @@
+"""How much of TAR's weighting a random draw decides: a head's per-step losses computed twice on the same segments.
+
+Usage::
+
+    python -m benchmarks.analysis noise --from DIR [--data DIR] [--out FILE]
+
+A flow head's per-step loss depends on the time and noise it samples for that step, ACT's (in training) on the
+latent it samples from its encoder; the MLP's is a function of the step alone. TAR z-scores the losses within a
+segment, so what it up-weights is the within-segment order of the losses: where that order changes from one draw
+to the next, the weights follow the draw rather than the step.
+
+For every finished uniform run of ``--from`` with its ``checkpoint.pt`` (the policy trained with uniform weights:
+the reference, as in the fit diagnostics), the command rebuilds the policy and objective from the final checkpoint
+(:mod:`.rebuild`), computes the per-step losses along the run's recorded demonstrations twice in training mode
+(as TAR sees them; no gradient; torch seeds :data:`DRAW_SEEDS`), cuts each demonstration into consecutive
+segments of the run's ``data.slice_len`` (the last one shorter, masked) and writes one row per run
+(:data:`COLUMNS`, to ``--out``, default ``results/regimes/diagnosis/noise.csv``):
+
+* ``loss_r``: the within-segment correlation of the two draws' losses
+  (:func:`tar_rl.diagnostics.within_segment_correlation`): 1 for a deterministic loss;
+* ``top_agree``: the fraction of segments whose highest-loss step is the same in both draws
+  (:func:`tar_rl.diagnostics.top_step_agreement`), the step TAR weighs most; about ``1 / slice_len`` by chance;
+* ``weight_r_tar`` and ``weight_r_tar_gentle``: the within-segment correlation of TAR's weights at full strength
+  computed on each draw, at tar-rl's defaults and at the ``tar_gentle`` preset's settings;
+* ``segments`` and ``steps``: how many segments (of at least two steps) and steps the numbers are over.
+
+The command prints the table as markdown. It refuses a folder without such runs and a run whose checkpoint is
+missing or not its last step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from benchmarks.analysis.pairs import DEFAULT_RUNS
+from benchmarks.analysis.rebuild import rebuild_final
+from benchmarks.studies.writers import fmt_num
+from tar_rl.diagnostics import top_step_agreement, within_segment_correlation
+from tar_rl.report import Run, load_run
+
+__all__ = ["COLUMNS", "DRAW_SEEDS", "draw_losses", "noise_row", "noise_table", "segments", "weight_presets"]
+
+#: The torch seeds of the two draws.
+DRAW_SEEDS = (0, 1)
+#: The columns of ``noise.csv``.
+COLUMNS = (
+    "run",
+    "head",
+    "seed",
+    "segments",
+    "steps",
+    "loss_r",
+    "top_agree",
+    "weight_r_tar",
+    "weight_r_tar_gentle",
+)
+DEFAULT_OUT = DEFAULT_RUNS.parent / "diagnosis" / "noise.csv"
+WHO = "noise"
+
+
+def weight_presets() -> dict[str, dict]:
+    """TAR's hyper-parameters (:func:`tar_rl.objectives.tar_weights` keywords) at tar-rl's defaults (``tar``) and
+    at the ``tar_gentle`` preset's settings, read from the recipe's presets."""
+    from tar_rl.objectives import TARParams
+    from tar_rl.recipes.config import OBJECTIVE_PRESETS
+
+    gentle = OBJECTIVE_PRESETS["tar_gentle"]
+    return {
+        "tar": TARParams().tar_kwargs(),
+        "tar_gentle": TARParams(**{f.name: getattr(gentle, f.name) for f in fields(TARParams)}).tar_kwargs(),
+    }
+
+
+def segments(values: list[np.ndarray], slice_len: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-episode 1-d ``values`` cut into consecutive segments of ``slice_len`` steps: ``([N, slice_len] values,
+    [N, slice_len] valid)``, an episode's last segment padded with 0 and masked (``valid`` is ``True`` on real
+    steps)."""
+    if slice_len < 1:
+        raise ValueError(f"slice_len must be at least 1, got {slice_len}")
+    rows, masks = [], []
+    for episode in values:
+        for start in range(0, len(episode), slice_len):
+            part = np.asarray(episode[start : start + slice_len], dtype=np.float64)
+            rows.append(np.pad(part, (0, slice_len - len(part))))
+            masks.append(np.arange(slice_len) < len(part))
+    return np.stack(rows), np.stack(masks)
+
+
+def draw_losses(objective, episodes: list, seed: int) -> list[np.ndarray]:
+    """The per-step losses along each of ``episodes`` (``(task, episode, TensorDict)``), computed in training mode
+    without gradient after ``torch.manual_seed(seed)``: the losses TAR would weigh, under one random draw."""
+    import torch
+
+    was_training = objective.training
+    objective.train()
+    torch.manual_seed(seed)
+    try:
+        with torch.no_grad():
+            return [objective.step_losses(td.unsqueeze(0)).squeeze(0).double().numpy() for _, _, td in episodes]
+    finally:
+        objective.train(was_training)
+
+
+def noise_row(run: Run, data_root: Path | None = None, demos: dict | None = None) -> dict:
+    """One row of :data:`COLUMNS` for the finished run ``run`` (its final checkpoint rebuilt; ``demos`` caches the
+    datasets read, across runs)."""
+    import torch
+
+    from tar_rl.objectives import tar_weights
+
+    rebuilt = rebuild_final(run, data_root, {} if demos is None else demos, WHO)
+    slice_len = rebuilt.cfg.data.slice_len
+    draws = [segments(draw_losses(rebuilt.objective, rebuilt.episodes, s), slice_len) for s in DRAW_SEEDS]
+    (a, valid), (b, _) = draws
+    row = {
+        "run": run.name,
+        "head": run.policy,
+        "seed": run.seed,
+        "segments": int((valid.sum(axis=1) >= 2).sum()),
+        "steps": int(valid.sum()),
+        "loss_r": within_segment_correlation(a, b, valid),
+        "top_agree": top_step_agreement(a, b, valid),
+    }
+    mask = torch.from_numpy(valid)
+    for name, kwargs in weight_presets().items():
+        wa, wb = (tar_weights(torch.from_numpy(x), mask, **kwargs).numpy() for x in (a, b))
+        row[f"weight_r_{name}"] = within_segment_correlation(wa, wb, valid)
+    return row
+
+
+def noise_table(runs_dir: Path, data_root: Path | None = None) -> pd.DataFrame:
+    """:func:`noise_row` of every finished uniform run of ``runs_dir`` with its checkpoint, by head, seed and name.
+
+    Raises:
+        SystemExit: ``runs_dir`` is not a folder or holds no such run.
+    """
+    from tar_rl.runs import CHECKPOINT
+
+    if not runs_dir.is_dir():
+        raise SystemExit(f"{WHO}: {runs_dir} is not a folder")
+    found = []
+    for path in sorted(p for p in runs_dir.iterdir() if (p / CHECKPOINT).is_file()):
+        run = load_run(path)
+        if run.finished and run.objective == "uniform":
+            found.append(run)
+    if not found:
+        raise SystemExit(f"{WHO}: no finished uniform run with its {CHECKPOINT} in {runs_dir}")
+    demos: dict = {}
+    rows = []
+    for run in found:
+        print(f"{WHO}: recording {run.name}", file=sys.stderr)
+        rows.append(noise_row(run, data_root, demos))
+    return pd.DataFrame(rows, columns=list(COLUMNS)).sort_values(["head", "seed", "run"]).reset_index(drop=True)
+
+
+def noise_markdown(table: pd.DataFrame) -> str:
+    """``table`` as a markdown table, one row per run."""
+    lines = [
+        "| run | head | seed | segments | loss r | top step agrees | weight r (tar) | weight r (tar_gentle) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in table.itertuples():
+        cells = [fmt_num(v, 3) for v in (r.loss_r, r.top_agree, r.weight_r_tar, r.weight_r_tar_gentle)]
+        lines.append(f"| {r.run} | {r.head} | {r.seed} | {r.segments} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def noise_main(argv: list[str]) -> int:
+    """``noise --from DIR [--data DIR] [--out FILE]``: the two-draw table of the uniform runs of ``DIR``."""
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.analysis noise",
+        description="How alike two random draws of a head's per-step losses, and TAR's weights on them, are.",
+    )
+    p.add_argument("--from", dest="runs", required=True, help="the folder holding the runs with their checkpoints")
+    p.add_argument("--data", default=None, help="the folder holding their training datasets (default: data.root)")
+    p.add_argument("--out", default=str(DEFAULT_OUT), help="the CSV to write (default: results/regimes/diagnosis)")
+    args = p.parse_args(argv)
+    import torch
+
+    from tar_rl.io import write_csv_atomic
+
+    torch.set_num_threads(1)
+    table = noise_table(Path(args.runs), Path(args.data) if args.data else None)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_csv_atomic(table.round(6), out)
+    print(noise_markdown(table), end="")
+    print(out)
+    return 0

@@ -1,0 +1,113 @@
+"""A finished run's policy and objective rebuilt from its final checkpoint and config, with the demonstrations its
+``weights.csv`` records: what the analyses that compute again from a checkpoint (:mod:`.dims`, :mod:`.noise`)
+start from."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from tar_rl.report import Run
+
+__all__ = ["Rebuilt", "read_checkpoint", "rebuild_final", "training_demos"]
+
+
+@dataclass
+class Rebuilt:
+    """A run's objective (its policy inside) at the final step, its validated config and the recorded
+    demonstrations: ``(task, episode, TensorDict)`` per episode, the first ``logging.record_episodes`` of each
+    training task (:func:`tar_rl.recipes.record.demo_episodes`)."""
+
+    objective: object
+    cfg: object
+    episodes: list
+
+
+def read_checkpoint(path: Path, who: str) -> dict:
+    """A run's final checkpoint as saved, of any checkpoint format (R3's are of format 1: their ``data_info``
+    lacks the task instructions, which the MLP head with a task embedding does not read); ``who`` names the
+    command in the error."""
+    import torch
+
+    if not path.is_file():
+        raise SystemExit(f"{who}: no checkpoint at {path} (the analysis needs the final policy)")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    missing = [k for k in ("config", "data_info", "objective", "step", "finished") if k not in state]
+    if missing:
+        raise SystemExit(f"{who}: {path} is not a training checkpoint (no {', '.join(missing)})")
+    return state
+
+
+def training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict, who: str):
+    """The run's training dataset under ``root``, opened by :func:`tar_rl.data.load_dataset` (every check of a
+    dataset; nothing written).
+
+    The dataset is the folder whose metadata names the run's tasks, demonstrations per task, seed, chunk
+    horizon and history; its observation statistics must equal the checkpoint's (the data the policy was
+    trained on). A dataset of a format the package no longer reads is refused with how to build it again (the
+    scripted demonstrations of a seed are the same, which the statistics check confirms).
+    """
+    from tar_rl.data import DatasetError, load_dataset
+
+    wanted = {
+        "tasks": list(tasks),
+        "n_demos": cfg.data.n_demos,
+        "seed": cfg.data.seed,
+        "chunk_horizon": cfg.data.chunk_horizon,
+        "history": cfg.data.history,
+    }
+    found = []
+    for meta_path in sorted(root.glob("*/metadata.json")):
+        metadata = json.loads(meta_path.read_text())
+        if all(metadata.get(k) == v for k, v in wanted.items()):
+            found.append(meta_path.parent)
+    if len(found) != 1:
+        raise SystemExit(
+            f"{who}: {len(found)} datasets under {root} have the settings {wanted} (one is needed); "
+            "name the folder holding the runs' training data with --data"
+        )
+    try:
+        demos = load_dataset(found[0])
+    except DatasetError as err:
+        raise SystemExit(f"{who}: {err}") from None
+    if list(demos.metadata["stats"]["observation"]["mean"]) != list(info["obs_mean"]):
+        raise SystemExit(f"{who}: {found[0]} holds other data than the checkpoint was trained on")
+    return demos
+
+
+def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Rebuilt:
+    """``run``'s objective and policy from its final checkpoint, and its recorded demonstrations.
+
+    The policy and objective are built from the checkpoint's config and weights; ``data_root`` defaults to the
+    run's ``data.root``; ``demos`` caches the datasets read, across runs (updated here).
+
+    Raises:
+        SystemExit: no checkpoint, an unfinished one, or no training data (``who`` names the command).
+    """
+    import torch
+
+    from tar_rl.policies import DataInfo
+    from tar_rl.recipes.builders import make_objective, make_policy
+    from tar_rl.recipes.record import demo_episodes
+    from tar_rl.recipes.rundir import with_defaults
+    from tar_rl.recipes.validate import validate
+    from tar_rl.runs import CHECKPOINT
+
+    state = read_checkpoint(run.path / CHECKPOINT, who)
+    config = with_defaults(state["config"])
+    config["init"] = {"from": None}  # rebuilding needs neither a post-training source nor held-out data
+    config["diagnostics"]["heldout_demos"] = 0
+    job = validate(config)
+    cfg = job.config
+    if not state["finished"] or state["step"] != cfg.optim.steps:
+        raise SystemExit(f"{who}: {run.path} holds step {state['step']} of {cfg.optim.steps}, not the final one")
+    torch.manual_seed(cfg.seed)
+    policy = make_policy(cfg.policy, DataInfo.from_dict(state["data_info"]))
+    objective = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
+    objective.load_state_dict(state["objective"])
+    root = Path(data_root or cfg.data.root)
+    if root not in demos:
+        demos[root] = training_demos(root, cfg, job.train_tasks, state["data_info"], who)
+    episodes = demo_episodes(demos[root], job.train_tasks, cfg.logging.record_episodes, policy.keys, "cpu")
+    return Rebuilt(objective, cfg, episodes)

@@ -1,0 +1,117 @@
+"""Two draws of a head's per-step losses (``python -m benchmarks.analysis noise``): the within-segment correlation
+and the top-step agreement against hand values, the segments, the presets' settings, and the command on tiny
+trained runs (a deterministic MLP loss agrees with itself exactly; a flow head's sampled time and noise do not)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from recipe_helpers import tiny
+
+from benchmarks.analysis import noise
+from tar_rl.diagnostics import top_step_agreement, within_segment_correlation
+
+T, F = True, False
+
+
+def test_within_segment_correlation_by_hand():
+    # one segment reversed: -1, whatever the padded step holds
+    assert within_segment_correlation([[1, 2, 3, 0]], [[3, 2, 1, 99]], [[T, T, T, F]]) == pytest.approx(-1.0)
+    # a per-segment offset and a common positive scale change nothing
+    a = [[1.0, 2.0, 3.0], [0.0, 5.0, 1.0]]
+    b = [[12.0, 14.0, 16.0], [-4.0, 6.0, -2.0]]
+    assert within_segment_correlation(a, b, [[T, T, T], [T, T, T]]) == pytest.approx(1.0)
+    # pooled over segments, each centred on its own mean:
+    # segment 1: a - mean = (-1, 0, 1), b - mean = (-1, 1, 0); segment 2: (-2, 2) and (2, -2)
+    # sum of products 1 - 8 = -7, sums of squares 2 + 8 = 10 each: -0.7
+    a = [[1.0, 2.0, 3.0], [0.0, 4.0, 7.0], [5.0, 0.0, 0.0]]
+    b = [[1.0, 3.0, 2.0], [4.0, 0.0, -7.0], [9.0, 0.0, 0.0]]
+    valid = [[T, T, T], [T, T, F], [T, F, F]]  # the lone valid step of the third segment has no order
+    assert within_segment_correlation(a, b, valid) == pytest.approx(-0.7)
+
+
+def test_within_segment_correlation_refuses_bad_input_and_is_nan_without_variation():
+    with pytest.raises(TypeError, match="bool mask"):
+        within_segment_correlation([[1, 2]], [[1, 2]], [[1, 1]])
+    with pytest.raises(ValueError, match="share one"):
+        within_segment_correlation([[1, 2]], [[1, 2, 3]], [[T, T]])
+    with pytest.raises(ValueError, match="finite"):
+        within_segment_correlation([[1, math.nan]], [[1, 2]], [[T, T]])
+    # a non-finite value on padding is not read
+    assert within_segment_correlation([[1, 2, math.nan]], [[1, 2, 0]], [[T, T, F]]) == pytest.approx(1.0)
+    assert math.isnan(within_segment_correlation([[2, 2]], [[1, 3]], [[T, T]]))
+
+
+def test_top_step_agreement_by_hand():
+    a = [[1.0, 3.0, 2.0], [0.0, 1.0, 2.0], [9.0, 0.0, 1.0]]
+    b = [[0.0, 5.0, 1.0], [2.0, 1.0, 0.0], [0.0, 2.0, 1.0]]
+    # segment 1: step 1 in both; segment 2: step 2 against step 0; segment 3: step 9.0 is padding, so
+    # a's largest valid value is at step 2 and b's at step 1
+    valid = [[T, T, T], [T, T, T], [F, T, T]]
+    assert top_step_agreement(a, b, valid) == pytest.approx(1 / 3)
+    assert math.isnan(top_step_agreement([[1.0, 2.0]], [[1.0, 2.0]], [[T, F]]))
+
+
+def test_segments_cut_each_episode_and_mask_the_last_piece():
+    values, valid = noise.segments([np.arange(1.0, 6.0), np.array([7.0, 8.0])], 2)
+    np.testing.assert_array_equal(values, [[1, 2], [3, 4], [5, 0], [7, 8]])
+    np.testing.assert_array_equal(valid, [[T, T], [T, T], [T, F], [T, T]])
+    with pytest.raises(ValueError, match="slice_len"):
+        noise.segments([np.arange(3.0)], 0)
+
+
+def test_weight_presets_are_the_libraries_defaults_and_the_gentle_preset():
+    presets = noise.weight_presets()
+    assert presets["tar"] == {"gamma": 1.0, "w_max": 3.0, "eps": 1e-8, "cap": "paper"}
+    assert presets["tar_gentle"] == {"gamma": 0.5, "w_max": 1.5, "eps": 1e-8, "cap": "exact"}
+
+
+@pytest.fixture(scope="module")
+def tiny_runs(tmp_path_factory) -> Path:
+    """Tiny finished runs in one folder, on a dataset folder of their own: uniform MLP, uniform flow, tar MLP."""
+    from tar_rl.recipes import train
+
+    tmp = tmp_path_factory.mktemp("noise")
+    data = tmp_path_factory.mktemp("noise_data")
+    for overrides in (("objective=uniform",), ("objective=uniform", "policy=flow"), ("objective=tar",)):
+        train(tiny(tmp, data, *overrides, "diagnostics.heldout_demos=0", "logging.record_episodes=2"))
+    return tmp / "runs"
+
+
+@pytest.mark.slow
+def test_the_command_on_tiny_runs(tiny_runs):
+    table = noise.noise_table(tiny_runs)
+    assert list(table.columns) == list(noise.COLUMNS)
+    assert list(table["head"]) == ["flow", "mlp"]  # the tar run is left out
+    mlp = table[table["head"] == "mlp"].iloc[0]
+    flow = table[table["head"] == "flow"].iloc[0]
+    # the MLP's loss is a function of the step: both draws give the same losses, hence the same weights
+    assert mlp["loss_r"] == pytest.approx(1.0) and mlp["top_agree"] == 1.0
+    assert mlp["weight_r_tar"] == pytest.approx(1.0) and mlp["weight_r_tar_gentle"] == pytest.approx(1.0)
+    # the flow head samples a time and a noise per step: the draws disagree
+    assert flow["loss_r"] < 0.99
+    assert mlp["segments"] > 0 and mlp["steps"] >= mlp["segments"] * 2
+
+
+@pytest.mark.slow
+def test_a_draw_repeats_with_its_seed(tiny_runs):
+    from benchmarks.analysis.rebuild import rebuild_final
+    from tar_rl.report import load_run
+
+    run = load_run(next(p for p in tiny_runs.iterdir() if p.name.startswith("uniform-flow")))
+    rebuilt = rebuild_final(run, None, {}, "noise")
+    first = noise.draw_losses(rebuilt.objective, rebuilt.episodes, 0)
+    again = noise.draw_losses(rebuilt.objective, rebuilt.episodes, 0)
+    other = noise.draw_losses(rebuilt.objective, rebuilt.episodes, 1)
+    assert all(np.array_equal(x, y) for x, y in zip(first, again, strict=True))
+    assert not all(np.array_equal(x, y) for x, y in zip(first, other, strict=True))
+
+
+def test_refusals_name_the_folder(tmp_path):
+    with pytest.raises(SystemExit, match="is not a folder"):
+        noise.noise_table(tmp_path / "absent")
+    with pytest.raises(SystemExit, match=r"no finished uniform run with its checkpoint\.pt"):
+        noise.noise_table(tmp_path)
