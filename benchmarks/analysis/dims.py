@@ -10,7 +10,6 @@ own at the last step (to :data:`RECOMPUTE_RTOL`).
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from pathlib import Path
@@ -19,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW, Pairs, load_pairs
-from benchmarks.analysis.rebuild import rebuild_final
+from benchmarks.analysis.rebuild import checkpoint_arguments, rebuild_final
 from benchmarks.studies.regimes import BASELINE, TREATMENT
 from benchmarks.studies.writers import fmt_num
 from tar_rl.report import Run
@@ -391,14 +390,9 @@ def plot_dims_time(labelled_dims: pd.DataFrame, run: str, tasks: list[str], path
 
 def dims_main(argv: list[str]) -> int:
     """``dims --from DIR [--data DIR] [--out FILE]``: record R3's final checkpoints per action dimension."""
-    p = argparse.ArgumentParser(
-        prog="python -m benchmarks.analysis dims",
-        description="Each action dim's loss along R3's recorded demonstrations.",
+    args = checkpoint_arguments(
+        argv, "dims", "Each action dim's loss along R3's recorded demonstrations.", "R3's runs", DEFAULT_DIMS
     )
-    p.add_argument("--from", dest="runs", required=True, help="the folder holding R3's runs with their checkpoints")
-    p.add_argument("--data", default=None, help="the folder holding their training dataset (default: data.root)")
-    p.add_argument("--out", default=str(DEFAULT_DIMS), help="the CSV to write (default: results/regimes/diagnosis)")
-    args = p.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)  # as R3's runs recorded their weights (threads=1)

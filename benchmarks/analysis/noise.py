@@ -30,7 +30,6 @@ missing or not its last step.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -39,7 +38,7 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.analysis.pairs import DEFAULT_RUNS
-from benchmarks.analysis.rebuild import rebuild_final
+from benchmarks.analysis.rebuild import checkpoint_arguments, rebuild_final
 from benchmarks.studies.writers import fmt_num
 from tar_rl.diagnostics import top_step_agreement, within_segment_correlation
 from tar_rl.report import Run, load_run
@@ -173,14 +172,13 @@ def noise_markdown(table: pd.DataFrame) -> str:
 
 def noise_main(argv: list[str]) -> int:
     """``noise --from DIR [--data DIR] [--out FILE]``: the two-draw table of the uniform runs of ``DIR``."""
-    p = argparse.ArgumentParser(
-        prog="python -m benchmarks.analysis noise",
-        description="How alike two random draws of a head's per-step losses, and TAR's weights on them, are.",
+    args = checkpoint_arguments(
+        argv,
+        "noise",
+        "How alike two random draws of a head's per-step losses, and TAR's weights on them, are.",
+        "the runs",
+        DEFAULT_OUT,
     )
-    p.add_argument("--from", dest="runs", required=True, help="the folder holding the runs with their checkpoints")
-    p.add_argument("--data", default=None, help="the folder holding their training datasets (default: data.root)")
-    p.add_argument("--out", default=str(DEFAULT_OUT), help="the CSV to write (default: results/regimes/diagnosis)")
-    args = p.parse_args(argv)
     import torch
 
     from tar_rl.io import write_csv_atomic

@@ -4,13 +4,14 @@ start from."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from tar_rl.report import Run
 
-__all__ = ["Rebuilt", "read_checkpoint", "rebuild_final", "training_demos"]
+__all__ = ["Rebuilt", "checkpoint_arguments", "read_checkpoint", "rebuild_final", "training_demos"]
 
 
 @dataclass
@@ -111,3 +112,13 @@ def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Re
         demos[root] = training_demos(root, cfg, job.train_tasks, state["data_info"], who)
     episodes = demo_episodes(demos[root], job.train_tasks, cfg.logging.record_episodes, policy.keys, "cpu")
     return Rebuilt(objective, cfg, episodes)
+
+
+def checkpoint_arguments(argv: list[str], prog: str, description: str, runs: str, out: Path) -> argparse.Namespace:
+    """``argv`` parsed as the command line of an analysis that computes from final checkpoints: ``--from DIR``
+    (``runs`` says which runs), ``--data DIR`` and ``--out FILE`` (default ``out``)."""
+    p = argparse.ArgumentParser(prog=f"python -m benchmarks.analysis {prog}", description=description)
+    p.add_argument("--from", dest="runs", required=True, help=f"the folder holding {runs} with their checkpoints")
+    p.add_argument("--data", default=None, help="the folder holding their training datasets (default: data.root)")
+    p.add_argument("--out", default=str(out), help=f"the CSV to write (default: {out.parent.name}/{out.name})")
+    return p.parse_args(argv)

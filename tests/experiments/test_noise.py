@@ -115,3 +115,15 @@ def test_refusals_name_the_folder(tmp_path):
         noise.noise_table(tmp_path / "absent")
     with pytest.raises(SystemExit, match=r"no finished uniform run with its checkpoint\.pt"):
         noise.noise_table(tmp_path)
+
+
+@pytest.mark.slow
+def test_the_command_line_writes_the_table(tiny_runs, tmp_path, capsys):
+    import pandas as pd
+
+    out = tmp_path / "noise.csv"
+    assert noise.noise_main(["--from", str(tiny_runs), "--out", str(out)]) == 0
+    written = pd.read_csv(out)
+    assert list(written.columns) == list(noise.COLUMNS) and list(written["head"]) == ["flow", "mlp"]
+    printed = capsys.readouterr().out
+    assert "| run | head | seed |" in printed and str(out) in printed
