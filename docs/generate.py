@@ -13,7 +13,8 @@ What it generates, each from where the code or the results hold it:
   (:data:`BLOCKS`): in ``README.md`` the regime study's decision table in brief, from
   ``benchmarks/results/regimes/decision.csv``; in ``docs/experiments.md`` Table III extended with the baselines,
   from ``benchmarks/results/regimes/baselines/table.md``, and TAR's tuning in R3, from ``tuning.md`` and
-  ``final.md`` under ``benchmarks/results/regimes/tuning/``.
+  ``final.md`` under ``benchmarks/results/regimes/tuning/``; in ``docs/objective.md`` the two-draw table of the
+  heads' per-step losses, from ``benchmarks/results/regimes/diagnosis/noise.md``.
 
 ``tests/test_docs.py`` fails when a committed file differs from what this command writes.
 """
@@ -36,6 +37,7 @@ REGIMES_CSV = "benchmarks/results/regimes/decision.csv"
 BASELINES_TABLE = "benchmarks/results/regimes/baselines/table.md"
 TUNING_TABLE = "benchmarks/results/regimes/tuning/tuning.md"
 TUNING_FINAL = "benchmarks/results/regimes/tuning/final.md"
+NOISE_TABLE = "benchmarks/results/regimes/diagnosis/noise.md"
 
 #: The embedded figures: docs/figures/<name> <- the result file that a benchmark command draws.
 FIGURES = {
@@ -394,11 +396,17 @@ def tuning_block() -> str:
     return _untitled(TUNING_TABLE) + (f"\n\n{_untitled(TUNING_FINAL)}" if final.is_file() else "")
 
 
+def noise_block() -> str:
+    """Two draws of the chunked heads' per-step losses, as ``python -m benchmarks.analysis noise`` writes them."""
+    return _untitled(NOISE_TABLE)
+
+
 #: The generated blocks: (page, block name) -> the function that writes the block's content.
 BLOCKS = {
     ("README.md", "regimes"): regimes_block,
     ("docs/experiments.md", "baselines"): baselines_block,
     ("docs/experiments.md", "tuning"): tuning_block,
+    ("docs/objective.md", "noise"): noise_block,
 }
 
 

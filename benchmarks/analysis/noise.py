@@ -24,7 +24,8 @@ segments of the run's ``data.slice_len`` (the last one shorter, masked) and writ
   computed on each draw, at tar-rl's defaults and at the ``tar_gentle`` preset's settings;
 * ``segments`` and ``steps``: how many segments (of at least two steps) and steps the numbers are over.
 
-The command prints the table as markdown. It refuses a folder without such runs and a run whose checkpoint is
+Beside the CSV it writes the same numbers as markdown (``noise.md``: the mean per head, then each run), which
+``docs/objective.md`` embeds, and prints them. It refuses a folder without such runs and a run whose checkpoint is
 missing or not its last step.
 """
 
@@ -43,22 +44,13 @@ from benchmarks.studies.writers import fmt_num
 from tar_rl.diagnostics import top_step_agreement, within_segment_correlation
 from tar_rl.report import Run, load_run
 
-__all__ = ["COLUMNS", "DRAW_SEEDS", "draw_losses", "noise_row", "noise_table", "segments", "weight_presets"]
+__all__ = ["COLUMNS", "DRAW_SEEDS", "MEASURES", "draw_losses", "noise_row", "noise_table", "segments", "weight_presets"]
 
 #: The torch seeds of the two draws.
 DRAW_SEEDS = (0, 1)
-#: The columns of ``noise.csv``.
-COLUMNS = (
-    "run",
-    "head",
-    "seed",
-    "segments",
-    "steps",
-    "loss_r",
-    "top_agree",
-    "weight_r_tar",
-    "weight_r_tar_gentle",
-)
+#: What a run's row measures (module docstring), and the columns of ``noise.csv``.
+MEASURES = ("loss_r", "top_agree", "weight_r_tar", "weight_r_tar_gentle")
+COLUMNS = ("run", "head", "seed", "segments", "steps", *MEASURES)
 DEFAULT_OUT = DEFAULT_RUNS.parent / "diagnosis" / "noise.csv"
 WHO = "noise"
 
@@ -159,14 +151,33 @@ def noise_table(runs_dir: Path, data_root: Path | None = None) -> pd.DataFrame:
 
 
 def noise_markdown(table: pd.DataFrame) -> str:
-    """``table`` as a markdown table, one row per run."""
+    """``noise.md``: the mean per head over its runs, then one row per run, and how they were computed."""
+
+    def cells(r) -> str:
+        return " | ".join(fmt_num(getattr(r, c), 3) for c in MEASURES)
+
+    header = "| loss r | top step agrees | weight r (tar) | weight r (tar_gentle) |"
+    by_head = table.groupby("head", sort=True)[list(MEASURES)].mean()
+    runs = table["head"].value_counts()
     lines = [
-        "| run | head | seed | segments | loss r | top step agrees | weight r (tar) | weight r (tar_gentle) |",
-        "|---|---|---|---|---|---|---|---|",
+        "# Two draws of a head's per-step losses",
+        "",
+        "| head | runs | " + header[2:],
+        "|---|---|---|---|---|---|",
+        *(f"| {r.Index} | {runs[r.Index]} | {cells(r)} |" for r in by_head.itertuples()),
+        "",
+        "| run | seed | segments | " + header[2:],
+        "|---|---|---|---|---|---|---|",
+        *(f"| {r.run} | {r.seed} | {r.segments} | {cells(r)} |" for r in table.itertuples()),
+        "",
+        f"Final checkpoints of the uniform runs; per-step losses along the recorded training demonstrations, "
+        f"computed twice in training mode (torch seeds {DRAW_SEEDS[0]} and {DRAW_SEEDS[1]}), cut into segments of "
+        "the run's `data.slice_len`. Loss r and weight r: within-segment correlation of the two draws (each draw's "
+        "segment mean removed); weight r of TAR's weights at full strength at tar-rl's defaults (`tar`) and at the "
+        "`tar_gentle` preset's settings. Top step agrees: the share of segments whose highest-loss step is the same "
+        "in both draws. Head rows: means over the head's runs. Command: `python -m benchmarks.analysis noise --from "
+        "DIR` (the runs with their `checkpoint.pt`).",
     ]
-    for r in table.itertuples():
-        cells = [fmt_num(v, 3) for v in (r.loss_r, r.top_agree, r.weight_r_tar, r.weight_r_tar_gentle)]
-        lines.append(f"| {r.run} | {r.head} | {r.seed} | {r.segments} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -181,13 +192,15 @@ def noise_main(argv: list[str]) -> int:
     )
     import torch
 
-    from tar_rl.io import write_csv_atomic
+    from tar_rl.io import atomic_write, write_csv_atomic
 
     torch.set_num_threads(1)
     table = noise_table(Path(args.runs), Path(args.data) if args.data else None)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_csv_atomic(table.round(6), out)
-    print(noise_markdown(table), end="")
+    text = noise_markdown(table)
+    atomic_write(out.with_suffix(".md"), lambda f: f.write(text))
+    print(text, end="")
     print(out)
     return 0
