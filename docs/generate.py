@@ -397,8 +397,10 @@ def tuning_block() -> str:
 
 
 def noise_block() -> str:
-    """Two draws of the chunked heads' per-step losses, as ``python -m benchmarks.analysis noise`` writes them."""
-    return _untitled(NOISE_TABLE)
+    """Two draws of the chunked heads' per-step losses: the per-head table and the explanation of ``noise.md`` as
+    ``python -m benchmarks.analysis noise`` writes it (its per-run table stays in the file)."""
+    heads, *_, about = _untitled(NOISE_TABLE).split("\n\n")
+    return f"{heads}\n\n{about}"
 
 
 #: The generated blocks: (page, block name) -> the function that writes the block's content.

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW, Pairs, load_pairs
-from benchmarks.analysis.rebuild import checkpoint_arguments, rebuild_final
+from benchmarks.analysis.rebuild import checkpoint_parser, rebuild_final
 from benchmarks.studies.regimes import BASELINE, TREATMENT
 from benchmarks.studies.writers import fmt_num
 from tar_rl.report import Run
@@ -390,9 +390,10 @@ def plot_dims_time(labelled_dims: pd.DataFrame, run: str, tasks: list[str], path
 
 def dims_main(argv: list[str]) -> int:
     """``dims --from DIR [--data DIR] [--out FILE]``: record R3's final checkpoints per action dimension."""
-    args = checkpoint_arguments(
-        argv, "dims", "Each action dim's loss along R3's recorded demonstrations.", "R3's runs", DEFAULT_DIMS
+    parser = checkpoint_parser(
+        "dims", "Each action dim's loss along R3's recorded demonstrations.", "R3's runs", DEFAULT_DIMS
     )
+    args = parser.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)  # as R3's runs recorded their weights (threads=1)

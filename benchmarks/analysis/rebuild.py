@@ -11,7 +11,7 @@ from pathlib import Path
 
 from tar_rl.report import Run
 
-__all__ = ["Rebuilt", "checkpoint_arguments", "read_checkpoint", "rebuild_final", "training_demos"]
+__all__ = ["Rebuilt", "checkpoint_parser", "read_checkpoint", "rebuild_final", "training_demos"]
 
 
 @dataclass
@@ -114,11 +114,11 @@ def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Re
     return Rebuilt(objective, cfg, episodes)
 
 
-def checkpoint_arguments(argv: list[str], prog: str, description: str, runs: str, out: Path) -> argparse.Namespace:
-    """``argv`` parsed as the command line of an analysis that computes from final checkpoints: ``--from DIR``
-    (``runs`` says which runs), ``--data DIR`` and ``--out FILE`` (default ``out``)."""
+def checkpoint_parser(prog: str, description: str, runs: str, out: Path) -> argparse.ArgumentParser:
+    """The command line of an analysis that computes from final checkpoints: ``--from DIR`` (``runs`` says which
+    runs), ``--data DIR`` and ``--out FILE`` (default ``out``); a command adds its own options."""
     p = argparse.ArgumentParser(prog=f"python -m benchmarks.analysis {prog}", description=description)
     p.add_argument("--from", dest="runs", required=True, help=f"the folder holding {runs} with their checkpoints")
     p.add_argument("--data", default=None, help="the folder holding their training datasets (default: data.root)")
     p.add_argument("--out", default=str(out), help=f"the CSV to write (default: {out.parent.name}/{out.name})")
-    return p.parse_args(argv)
+    return p

@@ -103,18 +103,32 @@ def test_a_draw_repeats_with_its_seed(tiny_runs):
 
     run = load_run(next(p for p in tiny_runs.iterdir() if p.name.startswith("uniform-flow")))
     rebuilt = rebuild_final(run, None, {}, "noise")
-    first = noise.draw_losses(rebuilt.objective, rebuilt.episodes, 0)
-    again = noise.draw_losses(rebuilt.objective, rebuilt.episodes, 0)
-    other = noise.draw_losses(rebuilt.objective, rebuilt.episodes, 1)
+    first = noise.draw_losses(rebuilt.objective, rebuilt.episodes, [0])
+    again = noise.draw_losses(rebuilt.objective, rebuilt.episodes, [0])
+    other = noise.draw_losses(rebuilt.objective, rebuilt.episodes, [1])
     assert all(np.array_equal(x, y) for x, y in zip(first, again, strict=True))
     assert not all(np.array_equal(x, y) for x, y in zip(first, other, strict=True))
+    # a draw of two passes is the mean of the one-pass draws of its seeds
+    both = noise.draw_losses(rebuilt.objective, rebuilt.episodes, [0, 1])
+    for x, y, mean in zip(first, other, both, strict=True):
+        np.testing.assert_allclose(mean, (x + y) / 2, rtol=1e-12)
 
 
-def test_refusals_name_the_folder(tmp_path):
+def test_the_two_draws_take_disjoint_seeds():
+    assert [list(s) for s in noise.draw_seeds(1)] == [[0], [1]]
+    assert [list(s) for s in noise.draw_seeds(3)] == [[0, 1, 2], [3, 4, 5]]
+    with pytest.raises(ValueError, match="at least one pass"):
+        noise.draw_seeds(0)
+
+
+def test_refusals_name_the_folder_and_the_bad_draws(tmp_path, capsys):
     with pytest.raises(SystemExit, match="is not a folder"):
         noise.noise_table(tmp_path / "absent")
     with pytest.raises(SystemExit, match=r"no finished uniform run with its checkpoint\.pt"):
         noise.noise_table(tmp_path)
+    with pytest.raises(SystemExit):
+        noise.noise_main(["--from", str(tmp_path), "--draws", "0"])
+    assert "each number of passes must be at least 1" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -122,9 +136,18 @@ def test_the_command_line_writes_the_table(tiny_runs, tmp_path, capsys):
     import pandas as pd
 
     out = tmp_path / "noise.csv"
-    assert noise.noise_main(["--from", str(tiny_runs), "--out", str(out)]) == 0
+    assert noise.noise_main(["--from", str(tiny_runs), "--out", str(out), "--draws", "1,4"]) == 0
     written = pd.read_csv(out)
-    assert list(written.columns) == list(noise.COLUMNS) and list(written["head"]) == ["flow", "mlp"]
+    assert list(written.columns) == list(noise.COLUMNS)
+    assert list(zip(written["head"], written["draws"], strict=True)) == [
+        ("flow", 1),
+        ("flow", 4),
+        ("mlp", 1),
+        ("mlp", 4),
+    ]
+    flow = written[written["head"] == "flow"].set_index("draws")
+    # four passes per draw cut each draw's noise variance by four: the draws agree more
+    assert flow.loc[4, "loss_r"] > flow.loc[1, "loss_r"]
     markdown = out.with_suffix(".md").read_text()
-    assert "| flow | 1 |" in markdown and "| mlp | 1 | 1.000 | 1.000 | 1.000 | 1.000 |" in markdown
+    assert "| flow | 1 | 1 |" in markdown and "| mlp | 4 | 1 | 1.000 | 1.000 | 1.000 | 1.000 |" in markdown
     assert markdown in capsys.readouterr().out
