@@ -168,9 +168,12 @@ def within_segment_correlation(a, b, valid) -> float:
         noise ``e``; ``nan`` when either side has no within-segment variation.
     """
     a, b, valid = _segment_pairs(a, b, valid)
-    n = valid.sum(axis=1, keepdims=True)
-    da = np.where(valid, a - np.where(valid, a, 0.0).sum(axis=1, keepdims=True) / np.maximum(n, 1), 0.0)
-    db = np.where(valid, b - np.where(valid, b, 0.0).sum(axis=1, keepdims=True) / np.maximum(n, 1), 0.0)
+    n = valid.sum(axis=1, keepdims=True)  # at least 2 on every kept segment
+
+    def centred(x: np.ndarray) -> np.ndarray:
+        return np.where(valid, x - np.where(valid, x, 0.0).sum(axis=1, keepdims=True) / n, 0.0)
+
+    da, db = centred(a), centred(b)
     denom = math.sqrt(float((da**2).sum() * (db**2).sum()))
     return float((da * db).sum() / denom) if denom > 0 else math.nan
 

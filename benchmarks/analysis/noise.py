@@ -92,43 +92,51 @@ def draw_seeds(passes: int) -> tuple[range, range]:
     return range(passes), range(passes, 2 * passes)
 
 
-def draw_losses(objective, episodes: list, seeds) -> list[np.ndarray]:
+def draw_losses(objective, episodes: list, seeds, cache: dict | None = None) -> list[np.ndarray]:
     """The per-step losses along each of ``episodes`` (``(task, episode, TensorDict)``), computed in training mode
     without gradient once after ``torch.manual_seed(s)`` for each ``s`` of ``seeds``, and averaged over those
-    passes: with one seed, the losses TAR would weigh under one random draw."""
+    passes: with one seed, the losses TAR would weigh under one random draw. ``cache`` (seed -> one pass's losses)
+    keeps the passes for other draws of the same objective and episodes, so no pass is computed twice."""
     import torch
 
+    cache = {} if cache is None else cache
     seeds = list(seeds)
-    was_training = objective.training
-    objective.train()
-    total = None
-    try:
-        with torch.no_grad():
-            for seed in seeds:
-                torch.manual_seed(seed)
-                one = [objective.step_losses(td.unsqueeze(0)).squeeze(0).double().numpy() for _, _, td in episodes]
-                total = one if total is None else [t + o for t, o in zip(total, one, strict=True)]
-    finally:
-        objective.train(was_training)
-    return [t / len(seeds) for t in total]
+    missing = [seed for seed in seeds if seed not in cache]
+    if missing:
+        was_training = objective.training
+        objective.train()
+        try:
+            with torch.no_grad():
+                for seed in missing:
+                    torch.manual_seed(seed)
+                    cache[seed] = [
+                        objective.step_losses(td.unsqueeze(0)).squeeze(0).double().numpy() for _, _, td in episodes
+                    ]
+        finally:
+            objective.train(was_training)
+    return [sum(steps) / len(seeds) for steps in zip(*(cache[seed] for seed in seeds), strict=True)]
 
 
 def noise_rows(run: Run, passes: Sequence[int] = (1,), data_root: Path | None = None, demos: dict | None = None):
     """The rows of :data:`COLUMNS` for the finished run ``run``, one per number of passes a draw averages (its
     final checkpoint rebuilt once; ``demos`` caches the datasets read, across runs)."""
     rebuilt = rebuild_final(run, data_root, {} if demos is None else demos, WHO)
-    return [noise_row(run, rebuilt, k) for k in passes]
+    cache: dict = {}
+    return [noise_row(run, rebuilt, k, cache) for k in passes]
 
 
-def noise_row(run: Run, rebuilt, passes: int = 1) -> dict:
+def noise_row(run: Run, rebuilt, passes: int = 1, cache: dict | None = None) -> dict:
     """One row of :data:`COLUMNS`: two draws of ``rebuilt``'s per-step losses (:class:`.rebuild.Rebuilt`), each
-    the mean of ``passes`` passes, compared."""
+    the mean of ``passes`` passes, compared (``cache`` as :func:`draw_losses`)."""
     import torch
 
     from tar_rl.objectives import tar_weights
 
     slice_len = rebuilt.cfg.data.slice_len
-    draws = [segments(draw_losses(rebuilt.objective, rebuilt.episodes, s), slice_len) for s in draw_seeds(passes)]
+    draws = [
+        segments(draw_losses(rebuilt.objective, rebuilt.episodes, seeds, cache), slice_len)
+        for seeds in draw_seeds(passes)
+    ]
     (a, valid), (b, _) = draws
     row = {
         "run": run.name,
