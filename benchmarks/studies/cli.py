@@ -35,6 +35,7 @@ STUDIES = {
     "regimes": "benchmarks.studies.regimes",
     "tuning": "benchmarks.studies.tuning",
     "baselines": "benchmarks.studies.baselines",
+    "why_act": "benchmarks.studies.why_act",
 }
 COMMANDS = ("plan", "run", "table", "collect")
 

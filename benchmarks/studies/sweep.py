@@ -70,10 +70,14 @@ def _stop(running: list) -> None:
         log.close()
 
 
-def _train_parallel(todo: Sequence[Spec], jobs: int, log_dir: Path) -> list[Spec]:
+def _train_parallel(todo: Sequence[Spec], jobs: int, log_dir: Path, tree: Path | None = None) -> list[Spec]:
     """Train the runs as subprocesses, ``jobs`` at once, each with ``eval.workers`` set to its share of the cores
-    (a setting outside the run's identity) and its output in ``log_dir``; returns the ones that failed."""
+    (a setting outside the run's identity) and its output in ``log_dir``; returns the ones that failed.
+
+    ``tree``: train with that checkout's code, its ``.venv/bin/python -m tar_rl train`` started in the checkout (a
+    git worktree at a study's commit); a run that finishes in another folder than the one planned here failed."""
     log_dir.mkdir(parents=True, exist_ok=True)
+    python, cwd = (sys.executable, None) if tree is None else (str(tree / ".venv" / "bin" / "python"), tree)
     workers = max(1, (os.cpu_count() or 1) // jobs)
     queue, running, failed = list(todo), [], []
     done = 0
@@ -81,10 +85,11 @@ def _train_parallel(todo: Sequence[Spec], jobs: int, log_dir: Path) -> list[Spec
         while queue or running:
             while queue and len(running) < jobs:
                 spec = queue.pop(0)
-                cmd = [sys.executable, "-m", "tar_rl", "train", *spec.overrides]
+                cmd = [python, "-m", "tar_rl", "train", *spec.overrides]
                 cmd += [f"eval.workers={workers}", "data.workers=1"]
                 log = open(log_dir / f"{spec.run_dir.name}.log", "a")
-                running.append((spec, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
+                proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=cwd)
+                running.append((spec, proc, log))
             time.sleep(1.0)
             for item in list(running):
                 spec, proc, log = item
@@ -94,19 +99,25 @@ def _train_parallel(todo: Sequence[Spec], jobs: int, log_dir: Path) -> list[Spec
                 log.close()
                 done += 1
                 status = "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode}, see {log.name})"
+                if proc.returncode == 0 and not spec.finished:
+                    status = f"FAILED (finished, but not in {spec.run_dir}: the trained code names it otherwise)"
                 print(f"[{done}/{len(todo)}] {spec.run_dir.name}: {status}", flush=True)
-                if proc.returncode != 0:
+                if status != "done":
                     failed.append(spec)
     finally:  # interrupted: stop the runs in flight
         _stop(running)
     return failed
 
 
-def execute(scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_dir: Path) -> list[Spec]:
+def execute(
+    scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_dir: Path, tree: Path | None = None
+) -> list[Spec]:
     """Train the unfinished runs of ``specs`` (finished ones are skipped); returns the runs that failed.
 
-    With ``jobs == 1`` the runs are trained one after another in this process; with more, as subprocesses
-    (:func:`_train_parallel`). ``dry_run`` prints the plan (runs to do and done) and the time estimate only.
+    With ``jobs == 1`` the runs are trained one after another in this process; with more, or with ``tree``, as
+    subprocesses (:func:`_train_parallel`). ``dry_run`` prints the plan (runs to do and done) and the time estimate
+    only. With ``tree`` the datasets are not collected here: the checkout's code reads (or collects) its own, so
+    collect them there first when runs start at once.
     """
     unique = list({s.run_dir: s for s in specs}.values())
     todo = [s for s in unique if not s.finished]
@@ -120,5 +131,7 @@ def execute(scale: Scale, specs: Sequence[Spec], jobs: int, dry_run: bool, log_d
         print(f"  to run: {s.run_dir.name}  {' '.join(s.overrides[len(scale.common) + 2 :])}")
     if dry_run or not todo:
         return []
+    if tree is not None:
+        return _train_parallel(todo, jobs, log_dir, tree)
     _collect_datasets(todo)
     return _train_here(todo) if jobs <= 1 else _train_parallel(todo, jobs, log_dir)
