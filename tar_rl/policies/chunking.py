@@ -52,7 +52,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.objectives import LossModule
 
-from . import DataInfo, Policy
+from .base import DataInfo, Policy
 from .common import TASK_CONDITIONING
 
 __all__ = ["EXECUTIONS", "ChunkLoss", "ChunkedActor", "ChunkedHeadConfig", "check_execution", "chunked_policy"]

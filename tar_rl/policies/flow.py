@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from . import DataInfo, Policy, PolicySpec, register_policy
+from .base import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import chunked_policy
 from .octo import OctoConfig, SeededSampling, TransformerBlock, check_chunk_shape, sinusoidal_embedding
 
