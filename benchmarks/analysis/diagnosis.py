@@ -64,7 +64,7 @@ from benchmarks.analysis.dims import (
 )
 from benchmarks.analysis.figures import plot_weight_phases
 from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW, Pairs, load_pairs
-from benchmarks.studies.regimes import BASELINE, TREATMENT
+from benchmarks.studies.protocol import BASELINE, TREATMENT
 from benchmarks.studies.writers import fmt_num
 from tar_rl.report import PHASES, Run
 from tar_rl.report.phases import label_steps

@@ -15,7 +15,8 @@ from pathlib import Path
 import yaml
 
 from benchmarks.studies.compare import check_pairs
-from benchmarks.studies.regimes import BASELINE, SIZES, TREATMENT
+from benchmarks.studies.protocol import BASELINE, TREATMENT
+from benchmarks.studies.regimes import SIZES
 from tar_rl.report import Run, load_run
 
 __all__ = ["DEFAULT_RUNS", "STEP_KEYS", "WINDOW", "Pairs", "load_pairs", "r3_settings"]

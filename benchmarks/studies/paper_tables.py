@@ -22,11 +22,10 @@ from benchmarks.analysis.figures import (
 )
 from benchmarks.analysis.phases import critical_windows, phase_weight_mass
 from benchmarks.studies.core import Spec
+from benchmarks.studies.protocol import BASELINE, TREATMENT
 from benchmarks.studies.writers import controls_markdown, table_one_markdown
 
 __all__ = [
-    "BASELINE",
-    "TREATMENT",
     "report_budget",
     "report_controls",
     "report_critical_windows",
@@ -34,8 +33,6 @@ __all__ = [
     "report_table",
     "start_output",
 ]
-
-BASELINE, TREATMENT = "uniform", "tar"
 
 
 def _caption(prov: dict) -> str:

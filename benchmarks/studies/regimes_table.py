@@ -18,11 +18,9 @@ import pandas as pd
 from benchmarks.studies.cli import Context
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_means, fit_summary, holm_into
 from benchmarks.studies.core import seed_major
+from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
 from benchmarks.studies.regimes import (
-    ARMS,
-    BASELINE,
     SCREENING_FILE,
-    TREATMENT,
     check_plan_started,
     chunked_heads,
     chunked_stage,
@@ -127,7 +125,7 @@ def chunked_loaded(ctx: Context, label: str, complete: bool) -> tuple[dict, list
         raise SystemExit(f"regimes: {label} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
     done = {arm: {s.config["seed"]: s for s in group if s.finished} for arm, group in specs.items()}
     seeds = sorted(set.intersection(*(set(d) for d in done.values())))
-    loaded = {arm: [load_run(done[arm][seed].run_dir) for seed in seeds] for arm in ARMS}
+    loaded = {arm: [load_run(done[arm][seed].run_dir) for seed in seeds] for arm in CHUNKED_ARMS}
     if seeds:
         check_pairs([run for group in loaded.values() for run in group])
     return loaded, missing
@@ -145,7 +143,7 @@ def by_device(label: str, loaded: dict) -> list[dict]:
     device = [(r.summary.get("machine") or {}).get("device", "unknown") for r in loaded[BASELINE]]
     uniform = [overall_success(r) for r in loaded[BASELINE]]
     rows = []
-    for arm in ARMS[1:]:
+    for arm in CHUNKED_ARMS[1:]:
         deltas = [overall_success(r) - u for r, u in zip(loaded[arm], uniform)]
         for kind in sorted(set(device)):
             mine = [d for d, k in zip(deltas, device) if k == kind]
@@ -190,11 +188,11 @@ def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list
         if not loaded[BASELINE]:
             continue
         devices += by_device(label, loaded)
-        for arm in ARMS:
+        for arm in CHUNKED_ARMS:
             fits.append({"regime": label, "head": head, "arm": arm, **fit_summary(loaded[arm])})
             table = compare(loaded[arm], file=io.StringIO())
             figure.append(table.assign(policy=f"{label} {head}", objective=arm))
-        for arm in ARMS[1:]:
+        for arm in CHUNKED_ARMS[1:]:
             row, group = regime_rows(f"{label} {arm}", [*loaded[BASELINE], *loaded[arm]])
             rows.append(row)
             groups.append(group)
