@@ -62,11 +62,11 @@ from benchmarks.analysis.dims import (
     plot_dims_time,
     read_dims,
 )
-from benchmarks.analysis.figures import plot_weight_phases
 from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW, Pairs, load_pairs
 from benchmarks.studies.protocol import BASELINE, TREATMENT
 from benchmarks.studies.writers import fmt_num
 from tar_rl.report import PHASES, Run
+from tar_rl.report.figures import plot_weight_phases
 from tar_rl.report.phases import label_steps
 
 __all__ = ["Diagnosis", "diagnose", "main", "write"]
