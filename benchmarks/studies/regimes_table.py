@@ -11,27 +11,37 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.studies.cli import Context
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_means, fit_summary, holm_into
-from benchmarks.studies.core import seed_major
+from benchmarks.studies.core import Spec, seed_major
 from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
-from benchmarks.studies.regimes import (
-    SCREENING_FILE,
-    check_plan_started,
-    chunked_heads,
-    chunked_stage,
-    plan,
-    screening,
-)
 from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
 
-__all__ = ["PRIMARY", "decision_markdown", "regime_rows", "write_tables"]
+__all__ = ["PRIMARY", "Planned", "decision_markdown", "regime_rows", "write_tables"]
 
 PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
+
+
+@dataclass(frozen=True)
+class Planned:
+    """The regime study's planned runs, as its tables read them (the study plans them: :mod:`.regimes`).
+
+    Attributes:
+        paired: the paired regimes' runs (R1, R1-10, R2, R3) by regime, those planned so far.
+        chunked: ``(head, runs by arm)`` by chunked-heads regime (R4, R5), each plan checked unchanged since its
+            runs started.
+        screening: R2's screening record (``screening.json``).
+        screened: the task list it holds (``None`` before the screening).
+    """
+
+    paired: dict[str, list[Spec]]
+    chunked: dict[str, tuple[str, dict[str, list[Spec]]]]
+    screening: Path
+    screened: list[str] | None
 
 
 def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
@@ -108,18 +118,16 @@ def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[
     return "\n".join(out) + "\n"
 
 
-def chunked_loaded(ctx: Context, label: str, complete: bool) -> tuple[dict, list[str]]:
-    """The finished runs of a chunked-heads regime per arm, over the seeds every arm has finished, and the
-    names of its runs not finished.
+def chunked_loaded(label: str, specs: dict[str, list[Spec]], complete: bool) -> tuple[dict, list[str]]:
+    """The finished runs of a chunked-heads regime per arm (``specs``: its planned runs by arm), over the seeds
+    every arm has finished, and the names of its runs not finished.
 
     Raises:
-        SystemExit: the plan changed after its runs started; with ``complete``, an arm misses a seed (the
-            runs named); a seed's runs trained at different commits or machines (:func:`check_pairs`).
+        SystemExit: with ``complete``, an arm misses a seed (the runs named); a seed's runs trained at different
+            commits or machines (:func:`check_pairs`).
     """
     from tar_rl.report import load_run
 
-    specs = chunked_stage(ctx.sizes, label).specs(ctx.planner)
-    check_plan_started(ctx.out, label, specs, record=False)
     missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
     if complete and missing:
         raise SystemExit(f"regimes: {label} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
@@ -177,14 +185,17 @@ def by_device_markdown(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list, dict, list]:
+def chunked_tables(
+    chunked: dict[str, tuple[str, dict[str, list[Spec]]]], complete: bool
+) -> tuple[list, list, list, list, dict, list]:
     """Decision rows (one per regime and TAR arm, Holm over all of them), per-group rows, fit rows, the
-    figure's compare rows, the missing runs and the per-device rows of the chunked-heads regimes."""
+    figure's compare rows, the missing runs and the per-device rows of the chunked-heads regimes (``chunked``:
+    :attr:`Planned.chunked`)."""
     from tar_rl.report import compare
 
     rows, groups, fits, figure, missing, devices = [], [], [], [], {}, []
-    for label, head in chunked_heads(ctx.sizes).items():
-        loaded, missing[label] = chunked_loaded(ctx, label, complete)
+    for label, (head, specs) in chunked.items():
+        loaded, missing[label] = chunked_loaded(label, specs, complete)
         if not loaded[BASELINE]:
             continue
         devices += by_device(label, loaded)
@@ -214,23 +225,20 @@ def chunked_markdown(fits: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def pair_tables(ctx: Context) -> tuple[list, list, list, dict]:
+def pair_tables(planned: Planned) -> tuple[list, list, list, dict]:
     """The decision rows (Holm over :data:`PRIMARY`), per-group rows, the figure's compare rows and the missing
     runs of the paired regimes (R1-R3)."""
     from tar_rl.report import compare, load_run
 
     rows, groups, figure, missing = [], [], [], {}
-    screened = screening(ctx.out)
-    chunked = set(chunked_heads(ctx.sizes))
-    for label, specs in plan(ctx).items():
-        if label in chunked:
-            continue
+    screened = planned.screened
+    for label, specs in planned.paired.items():
         missing[label] = [s.run_dir.name for s in specs if not s.finished]
         runs = [load_run(s.run_dir) for s in specs if s.finished]
         if label == "R2" and screened is not None:
             for run in runs:
                 if list(run.config["data"]["tasks"]) != list(screened):
-                    raise SystemExit(f"regimes: {run.name} trained on tasks other than {ctx.out / SCREENING_FILE}'s")
+                    raise SystemExit(f"regimes: {run.name} trained on tasks other than {planned.screening}'s")
         seeds = {r.seed for r in runs if r.objective == BASELINE} & {r.seed for r in runs if r.objective == TREATMENT}
         runs = [r for r in runs if r.seed in seeds]
         if not seeds:
@@ -247,15 +255,15 @@ def pair_tables(ctx: Context) -> tuple[list, list, list, dict]:
     return rows, groups, figure, missing
 
 
-def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -> str:
+def write_tables(planned: Planned, prov: dict, dest: Path, complete: bool = False) -> str:
     """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head from the
-    finished runs of ``ctx.out``, written into ``dest``; returns the markdown.
+    finished runs of ``planned``, written into ``dest``; returns the markdown.
 
     ``complete``: refuse a chunked-heads regime with a run of its plan missing (the final table)."""
     from tar_rl.report import plot_success_vs_neps
 
-    rows, groups, figure, missing = pair_tables(ctx)
-    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices = chunked_tables(ctx, complete)
+    rows, groups, figure, missing = pair_tables(planned)
+    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices = chunked_tables(planned.chunked, complete)
     rows, groups = rows + c_rows, groups + c_groups
     missing.update(c_missing)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
