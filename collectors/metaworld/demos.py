@@ -21,6 +21,7 @@ import multiprocessing
 import os
 import sys
 import time
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -210,7 +211,11 @@ def collect_task(
     env_steps = 0
     while len(kept_index) < n_demos and j < max_attempts:
         env.set_task(_tasks.variation(task, seed, j))
-        length, ok = _rollout(env, policy, buf, render)
+        with warnings.catch_warnings():
+            # MetaWorld's experts warn on every action outside [-1, 1]; the actions are clipped here, so the warning
+            # is noise on the user's terminal (in this process and in the spawned workers alike).
+            warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
+            length, ok = _rollout(env, policy, buf, render)
         env_steps += length
         if ok and render is not None:
             pixels.append(buf["pix"][:length].copy())
@@ -266,17 +271,12 @@ def collect_task(
 
 
 def _worker_init() -> None:
-    import warnings
-
     # One intra-op thread per worker. Collection itself never uses torch, so a worker does not
     # import it (~2 s); if something loads it later, OMP_NUM_THREADS makes it start with one.
     os.environ["OMP_NUM_THREADS"] = "1"
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)
-    # MetaWorld's experts warn on every unclipped action; the actions are clipped here, so the
-    # warning is noise (spawned workers do not inherit the parent's warning filters).
-    warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
 
 
 def _job(args: tuple[str, int, int, int | None, int]) -> TaskDemos:
