@@ -22,7 +22,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,7 +30,17 @@ import numpy as np
 from tar_rl.collectors.metaworld import tasks as _tasks
 from tar_rl.errors import children_ignore_sigint
 
-__all__ = ["ACTION_DIM", "HORIZON", "OBS_DIM", "TaskDemos", "collect", "collect_task", "default_max_attempts"]
+__all__ = [
+    "ACTION_DIM",
+    "HORIZON",
+    "OBS_DIM",
+    "TaskDemos",
+    "collect",
+    "collect_task",
+    "default_max_attempts",
+    "demos_arrays",
+    "demos_from_arrays",
+]
 
 HORIZON = 500  # MetaWorld v3's episode length: step 500 returns truncated=True, step 501 raises
 OBS_DIM = 39
@@ -101,6 +111,53 @@ class TaskDemos:
     def steps(self) -> int:
         """Number of stored steps."""
         return len(self.step)
+
+
+_ARRAYS = (
+    "observation",
+    "action_raw",
+    "action",
+    "next_observation",
+    "reward",
+    "terminated",
+    "truncated",
+    "step",
+    "lengths",
+    "variation_index",
+    "variation_seed",
+)
+_NUMBERS = {"seed": int, "attempts": int, "rejected": int, "env_steps": int, "seconds": float}
+
+
+def demos_arrays(results: Mapping[str, TaskDemos]) -> dict[str, np.ndarray]:
+    """The demonstrations of every task as named arrays (what ``np.savez`` stores), in task order; read back by
+    :func:`demos_from_arrays`."""
+    out = {"tasks": np.array(list(results))}
+    for i, r in enumerate(results.values()):
+        out |= {f"t{i}_{name}": getattr(r, name) for name in _ARRAYS}
+        out |= {f"t{i}_{name}": np.asarray(getattr(r, name)) for name in _NUMBERS}
+        out[f"t{i}_rejected_index"] = np.asarray(r.rejected_index, dtype=np.int64)
+        if r.pixels is not None:
+            out[f"t{i}_pixels"] = r.pixels
+    return out
+
+
+def demos_from_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, TaskDemos]:
+    """The demonstrations :func:`demos_arrays` stored, by task.
+
+    Raises:
+        KeyError: an array is missing.
+    """
+    out = {}
+    for i, task in enumerate(str(t) for t in arrays["tasks"]):
+        out[task] = TaskDemos(
+            task=task,
+            **{name: arrays[f"t{i}_{name}"] for name in _ARRAYS},
+            **{name: kind(arrays[f"t{i}_{name}"]) for name, kind in _NUMBERS.items()},
+            rejected_index=arrays[f"t{i}_rejected_index"].tolist(),
+            pixels=arrays[f"t{i}_pixels"] if f"t{i}_pixels" in arrays else None,
+        )
+    return out
 
 
 def _check_positive_int(name: str, value) -> int:
