@@ -17,12 +17,13 @@ collection runs at nearly the bare expert-rollout rate.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import sys
 import time
 import warnings
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -203,6 +204,15 @@ def _rollout(env, policy, buf: dict[str, np.ndarray], render=None) -> tuple[int,
     return HORIZON, False  # unreachable: MetaWorld truncates at step 500
 
 
+@contextlib.contextmanager
+def _clipped_actions_unannounced() -> Iterator[None]:
+    """MetaWorld's experts warn on every action outside [-1, 1] (``Constant(s) may be too high``); the actions are
+    clipped here, so inside this block the warning is not shown (in this process and in spawned workers alike)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
+        yield
+
+
 def _task_args(task, n_demos, seed, max_attempts) -> tuple[str, int, int, int]:
     """``collect_task``'s arguments checked: one task name resolved, counts and seed as ints (``ValueError``)."""
     if not isinstance(task, str):
@@ -268,10 +278,7 @@ def collect_task(
     env_steps = 0
     while len(kept_index) < n_demos and j < max_attempts:
         env.set_task(_tasks.variation(task, seed, j))
-        with warnings.catch_warnings():
-            # MetaWorld's experts warn on every action outside [-1, 1]; the actions are clipped here, so the warning
-            # is noise on the user's terminal (in this process and in the spawned workers alike).
-            warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
+        with _clipped_actions_unannounced():
             length, ok = _rollout(env, policy, buf, render)
         env_steps += length
         if ok and render is not None:
