@@ -221,18 +221,47 @@ def test_the_tuned_pair_waits_for_the_tuning_record(tmp_path):
         main("why_act", ["run", "tuned", "--scale", "ci", "--out", str(tmp_path / "r6"), "--dry-run"])
 
 
-def test_the_cpu_plan_reuses_r4s_cpu_seeds_and_trains_r4s_gpu_seeds_again():
+@pytest.fixture(scope="module")
+def cpu_placement():
+    """R6's cpu plan of the placement stage for seeds 0 (R4's CPU seed) and 4 (R4's H200 seed), composed once."""
+    ctx = cli.context(why_act.STUDY, ["plan", "--seeds", "0,4"])
+    return ctx, why_act.stage_specs(ctx, "placement")
+
+
+def test_the_cpu_plan_reuses_r4s_cpu_seeds_and_trains_r4s_gpu_seeds_again(cpu_placement):
     """R6's cpu plan (PLAN.md): seeds 0-3 and 7 pair with R4's committed runs (trained on the CPU at R4's commit),
     seeds 4-6 (R4's ran on an H200) train uniform and tar again; every control is planned in ``regimes/r6``."""
-    ctx = cli.context(why_act.STUDY, ["plan"])
-    specs = why_act.stage_specs(ctx, "placement")
+    _, specs = cpu_placement
     r4 = cli.RESULTS / "regimes" / "runs"
     for arm in ("uniform", "tar"):
         homes = {s.config["seed"]: s.run_dir.parent for s in specs[arm]}
-        assert {seed for seed, home in homes.items() if home == r4} == {0, 1, 2, 3, 7}
-        assert all(home == cli.RESULTS / "regimes" / "r6" / "runs" for s, home in homes.items() if s in (4, 5, 6))
+        assert homes == {0: r4, 4: cli.RESULTS / "regimes" / "r6" / "runs"}
         for s in specs[arm]:
             if s.run_dir.parent == r4:
                 summary = json.loads((s.run_dir / "summary.json").read_text())
                 assert summary["machine"]["device"] == "cpu" and summary["git_commit"].startswith("2a4022e")
     assert all(s.run_dir.parent.parent.name == "r6" for arm in why_act.CONTROLS for s in specs[arm])
+    assert why_act.SIZES["cpu"].reused_seeds == (0, 1, 2, 3, 7)  # R4's CPU seeds (PLAN.md, "Deviations")
+
+
+def test_the_committed_plans_are_the_ones_r6s_runs_started_with():
+    """``regimes/r6/started.json`` (written by the harness when each stage's first run started) holds the digest of
+    the stage's overrides, composed here by hand from R4's base: seeds 0-7, each seed's arms in order."""
+    from types import SimpleNamespace
+
+    from benchmarks.studies.core import Planner, plan_digest
+
+    started = json.loads((cli.RESULTS / "regimes" / "r6" / "started.json").read_text())
+    sizes = why_act.SIZES["cpu"]
+    planner = Planner(sizes.scale, cli.RESULTS / "regimes" / "r6", "datasets")
+    arms = {"placement": ("uniform", "tar", "shuffle", "random", "invert")}
+    arms["perturb"] = ("uniform", "tar", "perturb_high", "perturb_low")
+    for stage, digest in started.items():
+        assert stage in arms, f"a test for the digest of {stage} is missing"
+        plan = {
+            arm: [SimpleNamespace(overrides=planner.overrides(*sizes.base, f"seed={seed}", f"objective={arm}"))
+                  for seed in range(8)]
+            for arm in arms[stage]
+        }  # fmt: skip
+        assert plan_digest(plan) == digest, stage
+    assert started["placement"] == "746c15c91d5ef103"  # recorded when its first run started, at 6dcbd3d
