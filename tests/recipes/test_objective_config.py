@@ -22,10 +22,10 @@ from tar_reference import ref_segment_loss, ref_weights
 from tensordict import TensorDict
 
 from tar_rl.cli import main as cli_main
-from tar_rl.objectives import WEIGHTINGS, MixSchedule, tar_weights
+from tar_rl.objectives import WEIGHTINGS, MixSchedule, PerturbedTarget, tar_weights
 from tar_rl.policies import DataInfo
 from tar_rl.recipes import ConfigError, identity, make_objective, make_policy, run_name, validate
-from tar_rl.recipes.config import ObjectiveConfig, typed_config
+from tar_rl.recipes.config import ObjectiveConfig, objective_config, typed_config
 
 COMMON = {f.name for f in dataclasses.fields(ObjectiveConfig)}
 
@@ -130,3 +130,16 @@ def test_the_default_job_computes_eq2_with_tar_defaults_bit_for_bit():
         reference_weights = ref_weights(losses.tolist(), valid.tolist(), mix=min(max((step - 2) / 3, 0.0), 1.0))
         reference = ref_segment_loss(losses.tolist(), reference_weights, valid.tolist())
         assert out["loss_tar"].item() == pytest.approx(reference, rel=1e-5)
+
+
+@pytest.mark.parametrize("name", list(WEIGHTINGS))
+def test_the_job_wraps_a_perturbation_controls_head_loss_and_no_other(name):
+    policy = make_policy(typed_config(compose_config()).policy, DataInfo())
+    objective = make_objective(objective_config(name)(name=name), 10, 3, policy)
+    which = WEIGHTINGS[name].perturb
+    if which is None:
+        assert objective.inner is policy.loss
+        return
+    assert isinstance(objective.inner, PerturbedTarget) and objective.inner.inner is policy.loss
+    assert objective.inner.which == which and objective.inner.params == objective.params
+    assert torch.equal(objective.inner.generator.get_state(), torch.Generator().manual_seed(3).get_state())
