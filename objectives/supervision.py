@@ -20,7 +20,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.objectives import LossModule
 
-from .inner import loss_entry, read_valid, scored, step_losses
+from .inner import SIGNAL, loss_entry, read_signal, read_valid, scored, scores, step_losses
 from .weighting import PerturbParams, perturb_mask
 
 __all__ = ["PerturbedTarget", "perturb_target", "target_key"]
@@ -64,7 +64,8 @@ class PerturbedTarget(LossModule):
     with the schedule's alpha and sets its keys (the mask, the target, the event mask) to its own.
 
     Each call runs the inner loss twice: once without gradients on the clean batch, whose per-step losses
-    (event dims reduced as ``TARLoss`` reduces them) choose, per segment, the
+    (event dims reduced as ``TARLoss`` reduces them; its ranking signal where it gives one, as TAR's weights
+    rank by it) choose, per segment, the
     ``floor(fraction * mix * M + 1/2)`` highest-loss (``which="high"``) or lowest-loss (``"low"``) valid steps
     (:func:`~tar_rl.objectives.weighting.perturb_mask`); then on a copy of the batch whose target has Gaussian
     noise of std ``perturb_scale`` on those steps (:func:`perturb_target`). Its output is the second pass's,
@@ -93,11 +94,14 @@ class PerturbedTarget(LossModule):
             action (NestedKey): the supervision target to corrupt. Defaults to the inner loss's
                 (:func:`target_key`).
             event_valid (NestedKey, optional): bool mask over the loss's event dims, ``True`` on real elements.
+            signal (NestedKey): the inner output's ranking signal, ``[B, L]``, when it gives one. Defaults to
+                ``"signal"``.
         """
 
         valid: NestedKey = ("collector", "mask")
         action: NestedKey = "action"
         event_valid: NestedKey | None = None
+        signal: NestedKey = SIGNAL
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -157,7 +161,10 @@ class PerturbedTarget(LossModule):
         with torch.no_grad():
             clean_out = self.inner(tensordict)
             key = loss_entry(clean_out, self.loss_key)
-            clean = scored(step_losses(clean_out, key, tensordict, self.tensor_keys.event_valid), valid, self.nonfinite)
+            losses = step_losses(clean_out, key, tensordict, self.tensor_keys.event_valid)
+            signal = read_signal(clean_out, self.tensor_keys.signal, tensordict)
+            ranked = scores(losses, signal, valid, self.tensor_keys.signal, self.nonfinite)
+            clean = scored(ranked, valid, self.nonfinite)
         fraction = self.params.perturb_fraction * mix
         chosen = perturb_mask(clean, valid, fraction=fraction, which=self.which, generator=self.generator)
         perturbed = perturb_target(

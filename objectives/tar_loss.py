@@ -7,7 +7,9 @@ weights the steps of each segment with a registered weighting (``"tar"`` by defa
 uniform mean, the paper's controls and the baselines from the literature by name) and returns
 the segment loss of Eq. 2, averaged over the segments that have at least one valid step. Step and
 element weightings take one path: the weighting scores the losses at its granularity (steps, or the
-elements of each step), and each step's loss is the mean of its valid entries' weighted losses. A
+elements of each step), and each step's loss is the mean of its valid entries' weighted losses. Where
+the inner loss returns a ranking signal beside its loss (``signal``, one value per step), a step
+weighting scores the signal instead and still weights the loss. A
 stateful weighting (``dro_time``) keeps its state in a module of ``TARLoss`` (:class:`WeightingState`),
 updated on each training step. The perturbation controls' inner loss is the head's wrapped in
 :class:`~tar_rl.objectives.supervision.PerturbedTarget` (built by the training job, or by hand), which
@@ -103,7 +105,8 @@ class TARLoss(LossModule):
             batch shape, then any event dims). Its other ``loss_*`` entries are scalars, added unweighted
             (reported as ``aux_<key>``), or detached entries of the batch shape, which are diagnostics
             (reported as their mean over the valid steps, ``inner_<key>``); its entries not named ``loss*``
-            are reported detached under their own names.
+            are reported detached under their own names, but its ranking signal (``tensor_keys.signal``,
+            below), which the weighting scores in place of the per-step loss.
         weighting (str): a name from :data:`tar_rl.objectives.WEIGHTINGS`: ``"tar"`` (default),
             ``"uniform"`` (Eq. 1), a control: ``"shuffle"``, ``"random"``, ``"invert"``,
             ``"perturb_high"``, ``"perturb_low"`` (these need ``inner`` wrapped in
@@ -184,6 +187,11 @@ class TARLoss(LossModule):
                 weightings that read time (``dro_time``). Defaults to ``"step"``.
             episode_length (NestedKey): integer ``[B, L]``, the length of each step's episode;
                 read with ``step``. Defaults to ``"episode_length"``.
+            signal (NestedKey): an entry of the inner loss's *output*, not of the batch: a detached ``[B, L]``
+                ranking signal, one value per step, that the weighting scores in place of the per-step loss
+                (the loss is still what is weighted); e.g. the ``flow`` head's implied action error. Absent
+                from the output: the weighting scores the loss. An element weighting refuses it; a NaN or inf
+                at a valid step is handled as a non-finite loss (``nonfinite``). Defaults to ``"signal"``.
         """
 
         valid: NestedKey = ("collector", "mask")
@@ -191,6 +199,7 @@ class TARLoss(LossModule):
         event_valid: NestedKey | None = None
         step: NestedKey = "step"
         episode_length: NestedKey = "episode_length"
+        signal: NestedKey = inner_output.SIGNAL
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -230,15 +239,18 @@ class TARLoss(LossModule):
         self._perturbed = perturbed
         self.inner = inner
         self.set_keys(action=target_key(inner))
-        self.out_keys = [*self.out_keys, *(k for k in getattr(inner, "out_keys", ()) if not str(k).startswith("loss"))]
+        shown = (
+            k for k in getattr(inner, "out_keys", ()) if not str(k).startswith("loss") and k != self.tensor_keys.signal
+        )
+        self.out_keys = [*self.out_keys, *shown]
         self.out_keys += ["weights"] if return_weights else []
 
     # -- TorchRL plumbing -------------------------------------------------------------------
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        if self._perturbed:  # it reads the same mask, target and event mask
+        if self._perturbed:  # it reads the same mask, target, event mask and ranking signal
             keys = self.tensor_keys
-            self.inner.set_keys(valid=keys.valid, action=keys.action, event_valid=keys.event_valid)
+            self.inner.set_keys(valid=keys.valid, action=keys.action, event_valid=keys.event_valid, signal=keys.signal)
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -290,11 +302,19 @@ class TARLoss(LossModule):
         ``[B, L, A]``, each action dim's loss per step, the mean over the other event dims' valid entries (0 where
         a step has none), or ``None`` without event dims (:func:`~tar_rl.objectives.inner.dim_losses`). For
         inspection, like :meth:`step_losses`."""
+        return self.inspect_steps(tensordict)[:2]
+
+    def inspect_steps(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor | None, Tensor]:
+        """``(steps, dims, ranked)`` from one pass of the inner loss on the clean batch: ``steps`` and ``dims`` as
+        :meth:`step_and_dim_losses`, ``ranked`` ``[B, L]`` what a step weighting scores, the inner loss's ranking
+        signal where it gives one, else ``steps`` (detached). For inspection: it neither weights the steps nor
+        advances the schedule."""
         out = self.clean_inner(tensordict)
         key = inner_output.loss_entry(out, self.loss_key)
-        return self._step_losses(out, key, tensordict), inner_output.dim_losses(
-            out, key, tensordict, self.tensor_keys.event_valid
-        )
+        steps = self._step_losses(out, key, tensordict)
+        signal = inner_output.read_signal(out, self.tensor_keys.signal, tensordict)
+        dims = inner_output.dim_losses(out, key, tensordict, self.tensor_keys.event_valid)
+        return steps, dims, steps.detach() if signal is None else signal
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Weighted segment loss of Eq. 2 on a ``[B, L]`` TensorDict; does not modify it."""
@@ -305,8 +325,11 @@ class TARLoss(LossModule):
         key = inner_output.loss_entry(out, self.loss_key)
         time = inner_output.read_time(tensordict, self.time_keys, self.weighting.name)
         inputs = {**time, **self.weighting_state.inputs(training_step)}
-        loss, losses, weights = self._weigh(out, key, tensordict, valid, mix, inputs, training_step)
-        extra, diagnostics = inner_output.other_entries(out, key, tensordict, valid)
+        signal = inner_output.read_signal(out, self.tensor_keys.signal, tensordict)
+        loss, losses, weights = self._weigh(out, key, tensordict, valid, mix, inputs, training_step, signal)
+        if signal is not None and self.nonfinite == "propagate":
+            loss = loss + inner_output.nonfinite_term(signal, valid)
+        extra, diagnostics = inner_output.other_entries(out, key, tensordict, valid, self.tensor_keys.signal)
         for value in extra:
             loss = loss + value
         with torch.no_grad():
@@ -331,13 +354,15 @@ class TARLoss(LossModule):
 
     # -- Helpers ----------------------------------------------------------------------------
 
-    def _weigh(self, out, key, tensordict, valid, mix, inputs, training_step) -> tuple[Tensor, Tensor, Tensor]:
+    def _weigh(self, out, key, tensordict, valid, mix, inputs, training_step, signal) -> tuple[Tensor, Tensor, Tensor]:
         """``(loss, step losses, step weights)``: Eq. 2 with the weighting's weights, which see detached losses
-        (the stop-gradient of Eq. 3). The weighting scores its entries (:meth:`_entries`: the steps, or the
-        elements of each step); a step's loss is then the mean of its valid entries' ``weight * loss`` and its
-        weight the mean of their weights (a step weighting's entry is the step itself)."""
-        values, entry_valid = self._entries(out, key, tensordict, valid)
-        scored = inner_output.scored(values.detach(), entry_valid, self.nonfinite)
+        (the stop-gradient of Eq. 3), or the inner loss's detached ranking ``signal`` where it gives one. The
+        weighting scores its entries (:meth:`_entries`: the steps, or the elements of each step); a step's loss
+        is then the mean of its valid entries' ``weight * loss`` and its weight the mean of their weights (a step
+        weighting's entry is the step itself)."""
+        values, entry_valid = self._entries(out, key, tensordict, valid, signal)
+        ranked = inner_output.scores(values, signal, entry_valid, self.tensor_keys.signal, self.nonfinite)
+        scored = inner_output.scored(ranked, entry_valid, self.nonfinite)
         generator = self._generator if self.weighting.stochastic else None
         result = self._weight_function(values.device)(scored, entry_valid, self.params, mix, generator, **inputs)
         entry_weights = self.weighting_state.weights(result, training_step)
@@ -346,13 +371,18 @@ class TARLoss(LossModule):
         loss = segment_mean(weighted, torch.ones_like(weighted), valid)
         return loss, element_mean(values, entry_valid, steps), element_mean(entry_weights, entry_valid, steps)
 
-    def _entries(self, out, key, tensordict, valid: Tensor) -> tuple[Tensor, Tensor]:
-        """What the weighting scores and their mask: the per-step losses ``[B, L]`` (event dims reduced) and
+    def _entries(self, out, key, tensordict, valid: Tensor, signal: Tensor | None) -> tuple[Tensor, Tensor]:
+        """What the weighting weighs and their mask: the per-step losses ``[B, L]`` (event dims reduced) and
         ``valid``; for an element weighting, the per-element losses ``[B, L, *event, A]`` and the mask of their
-        valid elements on valid steps."""
+        valid elements on valid steps (a ranking signal, one value per step, is refused)."""
         if not self.weighting.elementwise:
             return self._step_losses(out, key, tensordict), valid
         event_key, name = self.tensor_keys.event_valid, self.weighting.name
+        if signal is not None:
+            raise ValueError(
+                f"objective {name!r} scores per-element losses, but the inner loss gives a ranking signal "
+                f"{self.tensor_keys.signal!r} of one value per step: rank by the loss (no signal) with it."
+            )
         elements, event_valid = inner_output.element_losses(out, key, tensordict, event_key, name)
         return elements, event_valid & valid.reshape(valid.shape + (1,) * (elements.ndim - valid.ndim))
 
