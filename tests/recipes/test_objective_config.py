@@ -160,6 +160,9 @@ def test_the_ranking_signal_and_time_sampling_at_their_defaults_name_the_same_ru
         (("policy=flow", "objective=uniform"), ("policy=flow", "objective=uniform", "objective.signal=loss")),
     ):
         assert run_name(compose_config(*explicit)) == run_name(compose_config(*default))
+    saved_before = compose_config("policy=flow")  # a config saved before the settings existed
+    del saved_before["objective"]["signal"], saved_before["policy"]["time_sampling"]
+    assert run_name(saved_before) == run_name(compose_config("policy=flow")) and identity(saved_before) == {}
     chosen = compose_config("policy=flow", "objective.signal=action_error", "policy.time_sampling=segment")
     assert identity(chosen) == {"objective": {"signal": "action_error"}, "policy": {"time_sampling": "segment"}}
     validate(chosen)
