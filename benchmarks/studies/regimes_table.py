@@ -1,5 +1,7 @@
 """The regime study's tables: the decision table (one row per regime and, for the chunked heads, per TAR arm),
-the per-group rows, the chunked heads' fit and weights, and Fig. 3 per regime, from the finished runs.
+the per-group rows, the chunked heads' fit and weights, Fig. 3 per regime, and the chunked heads' paired differences
+at a glance (``fig_paired.png``: each arm minus uniform per seed, with R6's controls where its runs are present),
+from the finished runs.
 
 Pairs (a chunked-heads seed's three runs) trained at different commits or on different machines are refused; a
 chunked-heads regime is tabled over the seeds every arm has finished, and with ``complete`` a missing run of its
@@ -10,10 +12,11 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import pandas as pd
+import yaml
 
 from benchmarks.studies.cli import Context
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_means, fit_summary, holm_into
@@ -31,9 +34,25 @@ from benchmarks.studies.regimes import (
 )
 from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
 
-__all__ = ["PRIMARY", "decision_markdown", "regime_rows", "write_tables"]
+__all__ = [
+    "PAIRED_FIGURE",
+    "PAIRED_SOURCES",
+    "PRIMARY",
+    "chunked_paired_rows",
+    "decision_markdown",
+    "r6_paired_rows",
+    "regime_rows",
+    "write_tables",
+]
 
 PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
+#: The paired differences at a glance (:func:`write_paired_figure`).
+PAIRED_FIGURE = "fig_paired.png"
+#: R6 (``why_act``, results/regimes/PLAN.md "Why TAR helps act"): its folder under the study's, and the arms the
+#: figure draws against uniform.
+R6_FOLDER, R6_ARMS = "r6", ("tar", "shuffle", "random", "invert")
+#: The config sections an R6 run shares with R4's runs (the tuning grid and the tuned pair differ in them).
+R6_SAME = ("policy", "data", "optim", "eval")
 
 
 def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
@@ -179,16 +198,18 @@ def by_device_markdown(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list, dict, list]:
+def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list, dict, list, dict]:
     """Decision rows (one per regime and TAR arm, Holm over all of them), per-group rows, fit rows, the
-    figure's compare rows, the missing runs and the per-device rows of the chunked-heads regimes."""
+    figure's compare rows, the missing runs, the per-device rows and the runs per arm (by regime) of the
+    chunked-heads regimes."""
     from tar_rl.report import compare
 
-    rows, groups, fits, figure, missing, devices = [], [], [], [], {}, []
+    rows, groups, fits, figure, missing, devices, by_regime = [], [], [], [], {}, [], {}
     for label, head in chunked_heads(ctx.sizes).items():
         loaded, missing[label] = chunked_loaded(ctx, label, complete)
         if not loaded[BASELINE]:
             continue
+        by_regime[label] = loaded
         devices += by_device(label, loaded)
         for arm in ARMS:
             fits.append({"regime": label, "head": head, "arm": arm, **fit_summary(loaded[arm])})
@@ -199,7 +220,7 @@ def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list
             rows.append(row)
             groups.append(group)
     holm_into(rows, "p_success")
-    return rows, groups, fits, figure, missing, devices
+    return rows, groups, fits, figure, missing, devices, by_regime
 
 
 def chunked_markdown(fits: Sequence[dict]) -> str:
@@ -249,15 +270,110 @@ def pair_tables(ctx: Context) -> tuple[list, list, list, dict]:
     return rows, groups, figure, missing
 
 
+def _overall_success(run) -> float:
+    from tar_rl.report import run_percent
+
+    return run_percent(run)[("success", "overall")]
+
+
+def chunked_paired_rows(by_regime: dict[str, dict], heads: dict[str, str]) -> list[dict]:
+    """Each chunked-heads regime's TAR arms minus uniform, per seed: ``label`` (``R4 act: tar``), ``group`` (the
+    regime), ``seed`` and ``delta`` (overall success, percentage points), regimes and arms in the table's order."""
+    rows = []
+    for label, loaded in by_regime.items():
+        uniform = {r.seed: _overall_success(r) for r in loaded[BASELINE]}
+        for arm in ARMS[1:]:
+            for run in loaded[arm]:
+                delta = _overall_success(run) - uniform[run.seed]
+                rows.append(
+                    {"label": f"{label} {heads[label]}: {arm}", "group": label, "seed": run.seed, "delta": delta}
+                )
+    return rows
+
+
+def r6_paired_rows(runs_dir: Path, r4: dict, head: str = "act") -> list[dict]:
+    """R6's placement controls and TAR minus uniform, per seed (:data:`R6_ARMS`), from the finished runs of
+    ``runs_dir`` (R6's ``runs`` folder) whose config shares R4's :data:`R6_SAME` sections and whose objective is one
+    of the arms or uniform; ``[]`` without that folder or without R4's runs (``r4``: R4's runs per arm).
+
+    A seed's ``uniform`` and ``tar`` are R6's own where R6 trained them, else R4's (PLAN.md's pairing); the seeds are
+    those with a control finished. A seed's two runs trained at different commits, machines or devices are refused
+    (:func:`check_pairs`), as is one arm's seed twice.
+    """
+    from tar_rl.report import load_run
+
+    if not runs_dir.is_dir() or not r4.get(BASELINE):
+        return []
+    reference = r4[BASELINE][0].config
+    found: dict[tuple[str, int], object] = {}
+    for path in sorted(p for p in runs_dir.iterdir() if (p / "config.yaml").is_file()):
+        config = yaml.safe_load((path / "config.yaml").read_text())
+        arm = (config.get("objective") or {}).get("name")
+        if arm not in (BASELINE, *R6_ARMS) or any(config.get(k) != reference.get(k) for k in R6_SAME):
+            continue
+        run = load_run(path)
+        if not run.finished:
+            continue
+        if (arm, run.seed) in found:
+            raise SystemExit(
+                f"regimes: two R6 {arm} runs of seed {run.seed}: {found[(arm, run.seed)].name}, {run.name}"
+            )
+        found[(arm, run.seed)] = run
+    seeds = sorted({seed for arm, seed in found if arm in R6_ARMS[1:]})
+    r4_runs = {(arm, r.seed): r for arm in (BASELINE, TREATMENT) for r in r4.get(arm, [])}
+    rows = []
+    for arm in R6_ARMS:
+        for seed in seeds:
+            uniform = found.get((BASELINE, seed)) or r4_runs.get((BASELINE, seed))
+            run = found.get((arm, seed)) or (r4_runs.get((arm, seed)) if arm == TREATMENT else None)
+            if uniform is None or run is None:
+                continue
+            check_pairs([uniform, run])
+            delta = _overall_success(run) - _overall_success(uniform)
+            rows.append({"label": f"R6 {head}: {arm}", "group": "R6", "seed": seed, "delta": delta})
+    return rows
+
+
+def _r6_source(ctx: Context, by_regime: dict[str, dict]) -> list[dict]:
+    return r6_paired_rows(ctx.out / R6_FOLDER / "runs", by_regime.get("R4", {}), chunked_heads(ctx.sizes).get("R4", ""))
+
+
+#: The paired figure's rows beyond R4 and R5, each ``(ctx, the chunked regimes' runs per arm by regime) -> rows``
+#: (``label``, ``group``, ``seed``, ``delta``, as :func:`chunked_paired_rows`'s), drawn below them in this order: R6's
+#: controls where its runs are present. R7 (issue 36) has no runs yet: its source is added here.
+PAIRED_SOURCES: tuple[Callable[[Context, dict], list[dict]], ...] = (_r6_source,)
+
+
+def write_paired_figure(ctx: Context, by_regime: dict[str, dict], dest: Path) -> Path | None:
+    """``fig_paired.png``: each chunked arm minus uniform per seed, with the mean and its 95% t CI
+    (:func:`tar_rl.report.plot_paired_deltas`), R4 and R5 then :data:`PAIRED_SOURCES`; None without rows."""
+    from tar_rl.report import plot_paired_deltas
+
+    rows = chunked_paired_rows(by_regime, chunked_heads(ctx.sizes))
+    for source in PAIRED_SOURCES:
+        rows += source(ctx, by_regime)
+    if not rows:
+        return None
+    regimes = ", ".join(dict.fromkeys(r["group"] for r in rows))
+    return plot_paired_deltas(
+        pd.DataFrame(rows),
+        dest / PAIRED_FIGURE,
+        caption=f"{regimes}: overall success of each arm minus uniform's, paired by seed (the decision table's pairs)",
+        xlabel="Δ success, arm - uniform (percentage points)",
+        title="Each arm minus uniform: seeds (dots), mean and 95% t CI (bar)",
+    )
+
+
 def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -> str:
-    """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head from the
-    finished runs of ``ctx.out``, written into ``dest``; returns the markdown.
+    """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head, and the chunked
+    heads' paired differences (:func:`write_paired_figure`) from the finished runs of ``ctx.out``, written into
+    ``dest``; returns the markdown.
 
     ``complete``: refuse a chunked-heads regime with a run of its plan missing (the final table)."""
     from tar_rl.report import plot_success_vs_neps
 
     rows, groups, figure, missing = pair_tables(ctx)
-    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices = chunked_tables(ctx, complete)
+    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices, c_loaded = chunked_tables(ctx, complete)
     rows, groups = rows + c_rows, groups + c_groups
     missing.update(c_missing)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
@@ -273,4 +389,5 @@ def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -
         fig_table = pd.concat(c_figure, ignore_index=True)
         caption = "chunked heads (R4 act, R5 flow): uniform -> tar, tar_gentle"
         plot_success_vs_neps(fig_table, dest / "fig3_chunked.png", caption=caption)
+    write_paired_figure(ctx, c_loaded, dest)
     return md
