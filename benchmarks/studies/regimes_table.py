@@ -1,6 +1,7 @@
 """The regime study's tables: the decision table (one row per regime and, for the chunked heads, per TAR arm),
 the per-group rows, the chunked heads' fit and weights, Fig. 3 per regime, and the chunked heads' paired differences
-at a glance (``fig_paired.png``: each arm minus uniform per seed, with R6's controls where its runs are present),
+at a glance (``fig_paired.png``: each arm minus uniform per seed, with R6's controls from its table's
+``r6/paired.csv``),
 from the finished runs.
 
 Pairs (a chunked-heads seed's three runs) trained at different commits or on different machines are refused; a
@@ -16,7 +17,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import pandas as pd
-import yaml
 
 from benchmarks.studies.cli import Context
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_means, fit_summary, holm_into
@@ -40,7 +40,6 @@ __all__ = [
     "PRIMARY",
     "chunked_paired_rows",
     "decision_markdown",
-    "r6_paired_rows",
     "regime_rows",
     "write_tables",
 ]
@@ -48,11 +47,9 @@ __all__ = [
 PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
 #: The paired differences at a glance (:func:`write_paired_figure`).
 PAIRED_FIGURE = "fig_paired.png"
-#: R6 (``why_act``, results/regimes/PLAN.md "Why TAR helps act"): its folder under the study's, and the arms the
-#: figure draws against uniform.
-R6_FOLDER, R6_ARMS = "r6", ("tar", "shuffle", "random", "invert")
-#: The config sections an R6 run shares with R4's runs (the tuning grid and the tuned pair differ in them).
-R6_SAME = ("policy", "data", "optim", "eval")
+#: R6 (``why_act``, results/regimes/PLAN.md "Why TAR helps act"): its folder under the study's, and the file of
+#: per-seed differences its table writes there (``label``, ``group``, ``seed``, ``delta``).
+R6_FOLDER, PAIRED_CSV = "r6", "paired.csv"
 
 
 def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
@@ -291,51 +288,11 @@ def chunked_paired_rows(by_regime: dict[str, dict], heads: dict[str, str]) -> li
     return rows
 
 
-def r6_paired_rows(runs_dir: Path, r4: dict, head: str = "act") -> list[dict]:
-    """R6's placement controls and TAR minus uniform, per seed (:data:`R6_ARMS`), from the finished runs of
-    ``runs_dir`` (R6's ``runs`` folder) whose config shares R4's :data:`R6_SAME` sections and whose objective is one
-    of the arms or uniform; ``[]`` without that folder or without R4's runs (``r4``: R4's runs per arm).
-
-    A seed's ``uniform`` and ``tar`` are R6's own where R6 trained them, else R4's (PLAN.md's pairing); the seeds are
-    those with a control finished. A seed's two runs trained at different commits, machines or devices are refused
-    (:func:`check_pairs`), as is one arm's seed twice.
-    """
-    from tar_rl.report import load_run
-
-    if not runs_dir.is_dir() or not r4.get(BASELINE):
-        return []
-    reference = r4[BASELINE][0].config
-    found: dict[tuple[str, int], object] = {}
-    for path in sorted(p for p in runs_dir.iterdir() if (p / "config.yaml").is_file()):
-        config = yaml.safe_load((path / "config.yaml").read_text())
-        arm = (config.get("objective") or {}).get("name")
-        if arm not in (BASELINE, *R6_ARMS) or any(config.get(k) != reference.get(k) for k in R6_SAME):
-            continue
-        run = load_run(path)
-        if not run.finished:
-            continue
-        if (arm, run.seed) in found:
-            raise SystemExit(
-                f"regimes: two R6 {arm} runs of seed {run.seed}: {found[(arm, run.seed)].name}, {run.name}"
-            )
-        found[(arm, run.seed)] = run
-    seeds = sorted({seed for arm, seed in found if arm in R6_ARMS[1:]})
-    r4_runs = {(arm, r.seed): r for arm in (BASELINE, TREATMENT) for r in r4.get(arm, [])}
-    rows = []
-    for arm in R6_ARMS:
-        for seed in seeds:
-            uniform = found.get((BASELINE, seed)) or r4_runs.get((BASELINE, seed))
-            run = found.get((arm, seed)) or (r4_runs.get((arm, seed)) if arm == TREATMENT else None)
-            if uniform is None or run is None:
-                continue
-            check_pairs([uniform, run])
-            delta = _overall_success(run) - _overall_success(uniform)
-            rows.append({"label": f"R6 {head}: {arm}", "group": "R6", "seed": seed, "delta": delta})
-    return rows
-
-
 def _r6_source(ctx: Context, by_regime: dict[str, dict]) -> list[dict]:
-    return r6_paired_rows(ctx.out / R6_FOLDER / "runs", by_regime.get("R4", {}), chunked_heads(ctx.sizes).get("R4", ""))
+    """R6's per-seed differences, as the ``why_act`` study's table writes them (``r6/paired.csv``; it pairs R6's
+    runs with R4's), or ``[]`` before it has."""
+    path = ctx.out / R6_FOLDER / PAIRED_CSV
+    return pd.read_csv(path).to_dict("records") if path.is_file() else []
 
 
 #: The paired figure's rows beyond R4 and R5, each ``(ctx, the chunked regimes' runs per arm by regime) -> rows``

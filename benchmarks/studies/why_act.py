@@ -335,9 +335,10 @@ def stage_runs(ctx: Context, stage: str, complete: bool) -> tuple[dict[str, dict
     }, (missing)
 
 
-def comparison_rows(ctx: Context, complete: bool) -> tuple[list[dict], list[pd.DataFrame], list[dict], dict]:
+def comparison_rows(ctx: Context, complete: bool) -> tuple[list[dict], list[pd.DataFrame], list[dict], dict, list]:
     """Every comparison with paired seeds (Holm over the primary ones present), their per-group rows, the fit
-    and weights of each stage's arms over its paired seeds, and the missing runs per stage."""
+    and weights of each stage's arms over its paired seeds, the missing runs per stage and the placement arms'
+    per-seed differences to uniform (:func:`paired_rows`)."""
     loaded, missing = {}, {}
     for stage in ("placement", "tuned", "perturb"):
         loaded[stage], missing[stage] = stage_runs(ctx, stage, complete)
@@ -362,7 +363,25 @@ def comparison_rows(ctx: Context, complete: bool) -> tuple[list[dict], list[pd.D
                     {"stage": stage, "arm": arm, "seeds": len(common)} | fit_summary([by_seed[s] for s in common])
                 )
     holm_into([r for r in rows if r["primary"]], "p_success")
-    return rows, groups, fits, missing
+    return rows, groups, fits, missing, paired_rows(loaded["placement"])
+
+
+def paired_rows(placement: dict[str, dict[int, object]]) -> list[dict]:
+    """Each placement arm (``tar`` and the controls) minus ``uniform`` per seed, in points of overall success:
+    ``label``, ``group``, ``seed``, ``delta``; the paired-difference figure of the regime study reads them
+    (``paired.csv``)."""
+    from tar_rl.report import run_percent
+
+    def success(run) -> float:
+        return run_percent(run)[("success", "overall")]
+
+    uniform = placement.get("uniform", {})
+    return [
+        {"label": f"R6 act: {arm}", "group": "R6", "seed": seed, "delta": success(run) - success(uniform[seed])}
+        for arm in ("tar", *CONTROLS)
+        for seed, run in sorted(placement.get(arm, {}).items())
+        if seed in uniform and any(seed in placement.get(c, {}) for c in CONTROLS)
+    ]
 
 
 def tuning_rows(ctx: Context) -> list[dict]:
@@ -453,7 +472,7 @@ def decision_markdown(rows, groups: pd.DataFrame, fits, tune: Sequence[dict], re
 def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -> str:
     """R6's tables (markdown + CSV) from the finished runs of ``ctx.out`` (and R4's beside it), written into
     ``dest``; returns the markdown. ``complete``: refuse a planned stage with a run missing (the final table)."""
-    rows, groups, fits, missing = comparison_rows(ctx, complete)
+    rows, groups, fits, missing, paired = comparison_rows(ctx, complete)
     tune = tuning_rows(ctx)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
     md = decision_markdown(rows, group_df, fits, tune, tuning(ctx), missing)
@@ -462,6 +481,8 @@ def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -
         tables["groups.csv"] = group_df
     if tune:
         tables["tuning.csv"] = pd.DataFrame(tune)
+    if paired:
+        tables["paired.csv"] = pd.DataFrame(paired)
     write_outputs(dest, {"decision.md": md}, tables, prov)
     return md
 

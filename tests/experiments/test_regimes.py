@@ -415,46 +415,13 @@ def test_the_chunked_paired_rows_are_each_arm_minus_uniform_per_seed():
     assert [r["delta"] for r in rows] == pytest.approx([5.0, -2.0, 0.0, 10.0])
 
 
-def _act(root, objective, seed, outcomes, **kw):
-    """A finished run of ``act`` on reach and assembly, 2 rollouts each: ``outcomes`` = successes per task."""
-    from run_helpers import write_run
+def test_r6s_rows_are_read_from_its_tables_paired_file(tmp_path):
+    from types import SimpleNamespace
 
-    rollouts = {
-        task: [(i < k, 50 if i < k else 100) for i in range(2)] for task, k in zip(("reach", "assembly"), outcomes)
-    }
-    return write_run(root, objective, seed, rollouts, policy="act", **kw)
+    from benchmarks.studies.regimes_table import _r6_source
 
-
-def test_r6_rows_pair_the_controls_with_r6s_or_r4s_uniform_and_tar(tmp_path):
-    from benchmarks.studies.regimes_table import r6_paired_rows
-    from tar_rl.report import load_run
-
-    # R4's runs (overall success = the mean of the two tasks'): uniform 25 / 50 %, tar 75 / 100 % (seeds 0 / 1)
-    r4 = {"uniform": [], "tar": []}
-    for seed, (u, t) in enumerate((((1, 0), (2, 1)), ((2, 0), (2, 2)))):
-        r4["uniform"].append(load_run(_act(tmp_path / "runs", "uniform", seed, u)))
-        r4["tar"].append(load_run(_act(tmp_path / "runs", "tar", seed, t)))
-    r6 = tmp_path / "r6" / "runs"
-    _act(r6, "shuffle", 0, (1, 1))  # 50 %: +25 against R4's uniform of seed 0
-    _act(r6, "random", 0, (0, 0))  # 0 %: -25
-    _act(r6, "uniform", 1, (1, 0))  # R6 trained seed 1's uniform and tar again: 25 %, 50 %
-    _act(r6, "tar", 1, (1, 1))
-    _act(r6, "shuffle", 1, (0, 0))  # 0 %: -25 against R6's uniform of seed 1
-    _act(r6, "uniform", 0, (2, 2), name="tuning-grid-run", eval_seed=2000)  # other settings: not a pair's
-    _act(r6, "perturb_high", 0, (2, 2))  # not drawn
-    rows = r6_paired_rows(r6, r4)
-    # tar: seed 0 R4's 75 - 25, seed 1 R6's 50 - 25 (R4's would give 100 - 50, mixed 100 - 25 or 50 - 50)
-    assert [(r["label"], r["seed"]) for r in rows] == [
-        ("R6 act: tar", 0),
-        ("R6 act: tar", 1),
-        ("R6 act: shuffle", 0),
-        ("R6 act: shuffle", 1),
-        ("R6 act: random", 0),
-    ]
-    assert [r["delta"] for r in rows] == pytest.approx([50.0, 25.0, 25.0, -25.0, -25.0])
-    assert {r["group"] for r in rows} == {"R6"}
-    assert r6_paired_rows(tmp_path / "no-r6", r4) == []
-    summary = json.loads((r6 / "shuffle-act-s1-deadbeef" / "summary.json").read_text())
-    (r6 / "shuffle-act-s1-deadbeef" / "summary.json").write_text(json.dumps({**summary, "git_commit": "fedcba"}))
-    with pytest.raises(SystemExit, match=r"pair of seed 1 \(uniform-act-s1-deadbeef, shuffle-act-s1-deadbeef\)"):
-        r6_paired_rows(r6, r4)
+    ctx = SimpleNamespace(out=tmp_path)
+    assert _r6_source(ctx, {}) == []
+    (tmp_path / "r6").mkdir()
+    (tmp_path / "r6" / "paired.csv").write_text("label,group,seed,delta\nR6 act: shuffle,R6,0,2.5\n")
+    assert _r6_source(ctx, {}) == [{"label": "R6 act: shuffle", "group": "R6", "seed": 0, "delta": 2.5}]

@@ -167,6 +167,13 @@ def test_the_table_holds_every_placement_comparison_and_the_tuning_grid(study):
     rows = {r["comparison"]: r for r in pd.read_csv(r6 / "decision.csv").to_dict("records")}
     assert rows["R6 tar - shuffle"]["d_success"] == pytest.approx(by_hand, abs=1e-6)
     assert rows["R6 tar - shuffle"]["pairs"] == 2
+    # paired.csv (the regime study's paired figure reads it): each control minus the seed's uniform, per seed
+    uniform = _arm_runs(out, "uniform") | _arm_runs(r6, "uniform", eval_seed=1000)
+    paired = pd.read_csv(r6 / "paired.csv")
+    mine = paired[paired["label"] == "R6 act: shuffle"].sort_values("seed")
+    assert mine["seed"].tolist() == [0, 1]
+    by_hand = [_success(shuffle[s]) - _success(uniform[s]) for s in (0, 1)]
+    assert mine["delta"].tolist() == pytest.approx(by_hand, abs=1e-9)
 
 
 @pytest.mark.slow
