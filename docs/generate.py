@@ -44,6 +44,7 @@ FIGURES = {
     "fig3_success_vs_neps.png": "benchmarks/results/paper-cpu/table/fig3_success_vs_neps.png",
     "fig5_weights.png": "benchmarks/results/paper-cpu/critical_windows/fig5_weights.png",
     "fig3_regimes.png": "benchmarks/results/regimes/fig3_regimes.png",
+    "fig_paired.png": "benchmarks/results/regimes/fig_paired.png",
     "r3_dims_time.png": "benchmarks/results/regimes/diagnosis/dims_time.png",
     "r3_scatter.png": "benchmarks/results/regimes/diagnosis/scatter.png",
 }

@@ -35,12 +35,12 @@ def check_step_losses(losses: Tensor, valid: Tensor) -> None:
     check_finite(losses, valid, "step")
 
 
-def check_finite(losses: Tensor, valid: Tensor, what: str) -> None:
+def check_finite(losses: Tensor, valid: Tensor, what: str, quantity: str = "loss") -> None:
     """Raise a ``ValueError`` if a loss where ``valid`` is ``True`` is NaN or inf (``what``: ``step`` or
-    ``element``, for the message). Under ``torch.compile`` the check is an in-graph assertion with the same
-    message, so compiled code needs no graph break."""
+    ``element``, and ``quantity``, what the values are, for the message). Under ``torch.compile`` the check is an
+    in-graph assertion with the same message, so compiled code needs no graph break."""
     bad = valid & ~torch.isfinite(losses.detach())
-    message = f"non-finite per-{what} loss at a valid {what}: the weights would be NaN."
+    message = f"non-finite per-{what} {quantity} at a valid {what}: the weights would be NaN."
     if torch.compiler.is_compiling():
         torch._assert_async(~bad.any(), message)
         return

@@ -1,5 +1,5 @@
 """What ``TARLoss`` reads: the batch's validity mask and time entries, and its inner loss's output (the per-step
-loss entry, reduced over event dims to ``[B, L]``).
+loss entry, reduced over event dims to ``[B, L]``, and the ranking signal an inner loss may give beside it).
 
 An inner loss (any TorchRL ``LossModule`` built with ``reduction="none"``) returns its per-step loss as
 one ``loss_*`` entry shaped like the input's batch ``[B, L]``, then any event dims (action dims, a
@@ -7,6 +7,10 @@ chunk's horizon). :class:`~tar_rl.objectives.TARLoss` and
 :class:`~tar_rl.objectives.supervision.PerturbedTarget` read it through these functions, so both
 reduce the event dims the same way: a plain mean, or the mean over the valid elements of an
 ``event_valid`` mask (``True`` on real elements).
+
+An inner loss may also return a detached ``[B, L]`` entry, the ranking signal (:data:`SIGNAL`, ``TARLoss``'s
+``signal`` key): the weights then rank the steps by it instead of by the loss, which they still weight (e.g. a
+flow head's implied action error, whose order within a segment its sampled training time does not decide).
 """
 
 from __future__ import annotations
@@ -16,20 +20,29 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from .checks import check_finite
 from .elementwise import element_mean, masked_mean
 
 __all__ = [
+    "SIGNAL",
     "checked_loss",
     "dim_losses",
     "element_losses",
     "loss_entry",
+    "nonfinite_term",
     "other_entries",
+    "read_signal",
     "read_time",
     "read_valid",
     "scored",
+    "scores",
     "segment_mean",
     "step_losses",
 ]
+
+
+#: The entry of an inner loss's output holding its ranking signal (``TARLoss``'s default ``signal`` key).
+SIGNAL = "signal"
 
 
 def read_valid(tensordict: TensorDictBase, key: NestedKey) -> Tensor:
@@ -166,6 +179,42 @@ def element_losses(
     return loss, _event_mask(loss, tensordict, event_key)
 
 
+def read_signal(out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> Tensor | None:
+    """The inner output's ranking signal at ``key``, detached, as ``[B, L]`` (a trailing dim of 1 dropped); ``None``
+    when the output has none. Refused unless it is floating and of the batch shape."""
+    signal = out.get(key, None)
+    if signal is None:
+        return None
+    batch = tensordict.batch_size
+    while signal.ndim > len(batch) and signal.shape[-1] == 1:
+        signal = signal.squeeze(-1)
+    if signal.shape != batch or not signal.is_floating_point():
+        raise ValueError(
+            f"the inner loss's ranking signal {key!r} must be a floating tensor of the batch shape {list(batch)} "
+            f"(one value per step), got {signal.dtype} {list(signal.shape)}."
+        )
+    return signal.detach()
+
+
+def scores(losses: Tensor, signal: Tensor | None, valid: Tensor, key: NestedKey, nonfinite: str) -> Tensor:
+    """What the weights rank: the detached ``losses``, or the inner loss's ranking ``signal`` (at ``key``) when it
+    gives one. A signal that is NaN or inf at a valid step is refused as a non-finite loss is (with
+    ``nonfinite="raise"``, naming the step), or scored as 0 (``"propagate"``: :func:`nonfinite_term` makes the
+    loss non-finite)."""
+    if signal is None:
+        return losses.detach()
+    if nonfinite == "raise":
+        check_finite(signal, valid, "step", f"ranking signal {key!r}")
+    return signal
+
+
+def nonfinite_term(signal: Tensor, valid: Tensor) -> Tensor:
+    """A scalar to add to the loss: 0, or NaN when ``signal`` is NaN or inf at a valid step, so that a non-finite
+    signal makes the loss non-finite as a non-finite per-step loss does (``nonfinite="propagate"``)."""
+    bad = valid & ~torch.isfinite(signal)
+    return torch.where(bad, signal, torch.zeros((), dtype=signal.dtype, device=signal.device)).sum() * 0.0
+
+
 def scored(losses: Tensor, valid: Tensor, nonfinite: str) -> Tensor:
     """The detached losses a weighting scores: with ``nonfinite="propagate"``, a non-finite one is 0.
 
@@ -196,15 +245,15 @@ def segment_mean(losses: Tensor, weights: Tensor, valid: Tensor) -> Tensor:
 
 
 def other_entries(
-    out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase, valid: Tensor
+    out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase, valid: Tensor, signal: NestedKey = SIGNAL
 ) -> tuple[list[Tensor], dict[str, Tensor]]:
-    """The inner output's entries besides the per-step loss at ``key``: the scalar ``loss_*`` ones to add
-    unweighted (reported as ``aux_<name>``), and the diagnostics: its detached ``loss_*`` entries of the batch shape
-    as their mean over the valid steps (``inner_<name>``), its other entries detached. A differentiable
-    ``loss_*`` entry of more than zero dims is refused (it would have to be weighted)."""
+    """The inner output's entries besides the per-step loss at ``key`` and the ranking signal at ``signal``: the
+    scalar ``loss_*`` ones to add unweighted (reported as ``aux_<name>``), and the diagnostics: its detached
+    ``loss_*`` entries of the batch shape as their mean over the valid steps (``inner_<name>``), its other entries
+    detached. A differentiable ``loss_*`` entry of more than zero dims is refused (it would have to be weighted)."""
     extra, diagnostics = [], {}
     for name in out.keys():
-        if not isinstance(name, str) or name == key:
+        if not isinstance(name, str) or name in (key, signal):
             continue
         value = out.get(name)
         if not name.startswith("loss"):

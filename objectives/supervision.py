@@ -4,9 +4,10 @@ The perturbation controls corrupt supervision rather than reweight it: on the st
 :func:`~tar_rl.objectives.weighting.perturb_mask` selects, Gaussian noise is added to the expert
 target the head learns from, and the steps are then averaged uniformly. The target is the entry a
 head's loss declares as its supervision target (``target_key`` on the loss, e.g. the expert chunk
-``action_chunk`` of a chunked head; for torchrl's BC losses, their ``action`` key): ``TARLoss``
-reads it from its inner loss and applies :func:`perturb_target` to that entry only, so no head
-renames its keys for the controls.
+``action_chunk`` of a chunked head; for torchrl's BC losses, their ``action`` key):
+:class:`PerturbedTarget` reads it from the loss it wraps and applies :func:`perturb_target` to that
+entry only, so no head renames its keys for the controls. The training job builds the wrapper around
+the head's loss (``tar_rl.recipes.make_objective``) and gives it to ``TARLoss`` as its inner loss.
 """
 
 from __future__ import annotations
@@ -19,10 +20,10 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.objectives import LossModule
 
-from .inner import loss_entry, read_valid, scored, step_losses
+from .inner import SIGNAL, loss_entry, read_signal, read_valid, scored, scores, step_losses
 from .weighting import PerturbParams, perturb_mask
 
-__all__ = ["PerturbedTarget", "perturb_target"]
+__all__ = ["PerturbedTarget", "perturb_target", "target_key"]
 
 
 def perturb_target(
@@ -49,13 +50,22 @@ def perturb_target(
     return perturbed
 
 
+def target_key(loss: LossModule) -> NestedKey:
+    """The supervision target of ``loss``: its declared ``target_key``, else its ``action`` key (torchrl's BC
+    losses), else ``"action"``."""
+    declared = getattr(loss, "target_key", None) or getattr(getattr(loss, "tensor_keys", None), "action", None)
+    return "action" if declared is None else declared
+
+
 class PerturbedTarget(LossModule):
     """An inner loss whose expert target is corrupted on the steps TAR would up- (or down-) weight: the
-    ``perturb_high`` / ``perturb_low`` controls, which :class:`~tar_rl.objectives.TARLoss` builds around its
-    inner loss (and then averages uniformly).
+    ``perturb_high`` / ``perturb_low`` controls. The training job builds it around the head's loss and gives it
+    to :class:`~tar_rl.objectives.TARLoss` with the control's weighting (the uniform mean); ``TARLoss`` calls it
+    with the schedule's alpha and sets its keys (the mask, the target, the event mask) to its own.
 
     Each call runs the inner loss twice: once without gradients on the clean batch, whose per-step losses
-    (event dims reduced as ``TARLoss`` reduces them) choose, per segment, the
+    (event dims reduced as ``TARLoss`` reduces them; its ranking signal where it gives one, as TAR's weights
+    rank by it) choose, per segment, the
     ``floor(fraction * mix * M + 1/2)`` highest-loss (``which="high"``) or lowest-loss (``"low"``) valid steps
     (:func:`~tar_rl.objectives.weighting.perturb_mask`); then on a copy of the batch whose target has Gaussian
     noise of std ``perturb_scale`` on those steps (:func:`perturb_target`). Its output is the second pass's,
@@ -69,7 +79,8 @@ class PerturbedTarget(LossModule):
     Keyword Args:
         loss_key (NestedKey): the inner output holding the per-step loss; default: its only ``loss_*`` entry.
         nonfinite (str): ``"raise"`` or ``"propagate"``, as for ``TARLoss`` (a non-finite clean loss ranks as 0).
-        generator (torch.Generator): draws the tie-breaks and the noise.
+        seed (int): seeds the generator of the tie-breaks and the noise; its state is part of ``state_dict()``,
+            so that a resumed run draws the same numbers.
 
     ``forward(tensordict, mix=1.0)`` takes the schedule's alpha, which scales the fraction.
     """
@@ -80,13 +91,17 @@ class PerturbedTarget(LossModule):
 
         Attributes:
             valid (NestedKey): bool ``[B, L]`` mask, ``True`` on real steps. Defaults to ``("collector", "mask")``.
-            action (NestedKey): the supervision target to corrupt. Defaults to ``"action"``.
+            action (NestedKey): the supervision target to corrupt. Defaults to the inner loss's
+                (:func:`target_key`).
             event_valid (NestedKey, optional): bool mask over the loss's event dims, ``True`` on real elements.
+            signal (NestedKey): the inner output's ranking signal, ``[B, L]``, when it gives one. Defaults to
+                ``"signal"``.
         """
 
         valid: NestedKey = ("collector", "mask")
         action: NestedKey = "action"
         event_valid: NestedKey | None = None
+        signal: NestedKey = SIGNAL
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -99,7 +114,7 @@ class PerturbedTarget(LossModule):
         *,
         loss_key: NestedKey | None = None,
         nonfinite: str = "raise",
-        generator: torch.Generator | None = None,
+        seed: int = 0,
     ) -> None:
         if which not in ("high", "low"):
             raise ValueError(f"which must be 'high' or 'low', got {which!r}.")
@@ -111,10 +126,27 @@ class PerturbedTarget(LossModule):
         self.params = params
         self.loss_key = loss_key
         self.nonfinite = nonfinite
-        self.generator = generator
+        self.generator = torch.Generator().manual_seed(seed)
+        self.set_keys(action=target_key(inner))
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
+
+    def get_extra_state(self) -> dict:
+        return {"generator": self.generator.get_state()}
+
+    def set_extra_state(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+
+    @property
+    def target_key(self) -> NestedKey:
+        """The supervision target it corrupts (its ``action`` key)."""
+        return self.tensor_keys.action
+
+    @property
+    def reduction(self) -> str:
+        """The inner loss's reduction (``"none"``: per-step losses)."""
+        return getattr(self.inner, "reduction", "none")
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -129,7 +161,10 @@ class PerturbedTarget(LossModule):
         with torch.no_grad():
             clean_out = self.inner(tensordict)
             key = loss_entry(clean_out, self.loss_key)
-            clean = scored(step_losses(clean_out, key, tensordict, self.tensor_keys.event_valid), valid, self.nonfinite)
+            losses = step_losses(clean_out, key, tensordict, self.tensor_keys.event_valid)
+            signal = read_signal(clean_out, self.tensor_keys.signal, tensordict)
+            ranked = scores(losses, signal, valid, self.tensor_keys.signal, self.nonfinite)
+            clean = scored(ranked, valid, self.nonfinite)
         fraction = self.params.perturb_fraction * mix
         chosen = perturb_mask(clean, valid, fraction=fraction, which=self.which, generator=self.generator)
         perturbed = perturb_target(

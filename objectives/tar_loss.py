@@ -5,10 +5,15 @@ The inner objective (any ``LossModule`` built with ``reduction="none"``, e.g. to
 ``TARLoss`` reduces any trailing event dimensions (action dims, chunk horizon) to ``[B, L]``,
 weights the steps of each segment with a registered weighting (``"tar"`` by default, the
 uniform mean, the paper's controls and the baselines from the literature by name) and returns
-the segment loss of Eq. 2, averaged over the segments that have at least one valid step. A
+the segment loss of Eq. 2, averaged over the segments that have at least one valid step. Step and
+element weightings take one path: the weighting scores the losses at its granularity (steps, or the
+elements of each step), and each step's loss is the mean of its valid entries' weighted losses. Where
+the inner loss returns a ranking signal beside its loss (``signal``, one value per step), a step
+weighting scores the signal instead and still weights the loss. A
 stateful weighting (``dro_time``) keeps its state in a module of ``TARLoss`` (:class:`WeightingState`),
-updated on each training step; the perturbation controls wrap the inner loss in
-:class:`~tar_rl.objectives.supervision.PerturbedTarget`.
+updated on each training step. The perturbation controls' inner loss is the head's wrapped in
+:class:`~tar_rl.objectives.supervision.PerturbedTarget` (built by the training job, or by hand), which
+``TARLoss`` calls with the schedule's alpha.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from . import inner as inner_output
 from .elementwise import element_mean
 from .inner import segment_mean  # exported here too: Eq. 2's reduction is part of TARLoss's interface
 from .schedule import MixSchedule
-from .supervision import PerturbedTarget
+from .supervision import PerturbedTarget, target_key
 from .weighting import Weighting, get_weighting
 
 __all__ = ["COMPILE_MODES", "NONFINITE_MODES", "TARLoss", "WeightingState", "compiles_weights", "segment_mean"]
@@ -100,11 +105,13 @@ class TARLoss(LossModule):
             batch shape, then any event dims). Its other ``loss_*`` entries are scalars, added unweighted
             (reported as ``aux_<key>``), or detached entries of the batch shape, which are diagnostics
             (reported as their mean over the valid steps, ``inner_<key>``); its entries not named ``loss*``
-            are reported detached under their own names.
+            are reported detached under their own names, but its ranking signal (``tensor_keys.signal``,
+            below), which the weighting scores in place of the per-step loss.
         weighting (str): a name from :data:`tar_rl.objectives.WEIGHTINGS`: ``"tar"`` (default),
             ``"uniform"`` (Eq. 1), a control: ``"shuffle"``, ``"random"``, ``"invert"``,
-            ``"perturb_high"``, ``"perturb_low"`` (these wrap ``inner`` in
-            :class:`~tar_rl.objectives.supervision.PerturbedTarget`), a baseline from the literature
+            ``"perturb_high"``, ``"perturb_low"`` (these need ``inner`` wrapped in
+            :class:`~tar_rl.objectives.supervision.PerturbedTarget` of their kind,
+            ``PerturbedTarget(loss, "high", PerturbParams())``), a baseline from the literature
             (:mod:`~tar_rl.objectives.baselines`): ``"tilted"``, ``"truncate"``, ``"keyframe"``,
             ``"focal"``, ``"dro_time"``, or an element weighting (:mod:`~tar_rl.objectives.elementwise`):
             ``"tar_arm"``, ``"tar_dimnorm"``, which scores the per-element losses before the event dims
@@ -168,9 +175,10 @@ class TARLoss(LossModule):
         Attributes:
             valid (NestedKey): bool ``[B, L]`` (or ``[B, L, 1]``) mask, ``True`` on real steps.
                 Defaults to ``("collector", "mask")``.
-            action (NestedKey): the supervision target that the ``perturb_*`` controls corrupt
-                (:mod:`~tar_rl.objectives.supervision`). Defaults to the inner loss's declared
-                ``target_key``, else its ``action`` key (torchrl's BC losses), else ``"action"``.
+            action (NestedKey): the supervision target that a
+                :class:`~tar_rl.objectives.supervision.PerturbedTarget` inner loss (the ``perturb_*``
+                controls) corrupts; set there too. Defaults to the inner loss's declared ``target_key``,
+                else its ``action`` key (torchrl's BC losses), else ``"action"``.
             event_valid (NestedKey, optional): bool ``[B, L, ...]`` mask over the event dims of
                 the per-step loss, ``True`` on real elements (e.g. the valid part of an action
                 chunk near the end of a trajectory). The per-step loss is the mean over the
@@ -179,6 +187,11 @@ class TARLoss(LossModule):
                 weightings that read time (``dro_time``). Defaults to ``"step"``.
             episode_length (NestedKey): integer ``[B, L]``, the length of each step's episode;
                 read with ``step``. Defaults to ``"episode_length"``.
+            signal (NestedKey): an entry of the inner loss's *output*, not of the batch: a detached ``[B, L]``
+                ranking signal, one value per step, that the weighting scores in place of the per-step loss
+                (the loss is still what is weighted); e.g. the ``flow`` head's implied action error. Absent
+                from the output: the weighting scores the loss. An element weighting refuses it; a NaN or inf
+                at a valid step is handled as a non-finite loss (``nonfinite``). Defaults to ``"signal"``.
         """
 
         valid: NestedKey = ("collector", "mask")
@@ -186,6 +199,7 @@ class TARLoss(LossModule):
         event_valid: NestedKey | None = None
         step: NestedKey = "step"
         episode_length: NestedKey = "episode_length"
+        signal: NestedKey = inner_output.SIGNAL
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -209,7 +223,9 @@ class TARLoss(LossModule):
     ) -> None:
         spec = get_weighting(weighting)
         params = _checked_params(spec, params)
-        _check_arguments(inner, schedule, compile_weights, nonfinite)
+        perturbed = isinstance(inner, PerturbedTarget)
+        _check_arguments(inner.inner if perturbed else inner, schedule, compile_weights, nonfinite)
+        _check_supervision(spec, inner)
         super().__init__()
         self.weighting, self.params = spec, params
         self.schedule = MixSchedule() if schedule is None else schedule
@@ -219,22 +235,22 @@ class TARLoss(LossModule):
         self.weighting_state = WeightingState(spec.initial_state(params) if spec.initial_state else None)
         self._generator = torch.Generator().manual_seed(seed)
         self._compiled_weights = None  # the weighting through torch.compile, built at its first use
-        target = getattr(inner, "target_key", None) or getattr(getattr(inner, "tensor_keys", None), "action", None)
-        if spec.perturb is not None:
-            inner = PerturbedTarget(
-                inner, spec.perturb, params, loss_key=loss_key, nonfinite=nonfinite, generator=self._generator
-            )
+        # A supervision transform (PerturbedTarget) takes the schedule's alpha and reads this loss's keys.
+        self._perturbed = perturbed
         self.inner = inner
-        self.set_keys(**({"action": target} if target is not None else {}))
-        self.out_keys = [*self.out_keys, *(k for k in getattr(inner, "out_keys", ()) if not str(k).startswith("loss"))]
+        self.set_keys(action=target_key(inner))
+        shown = (
+            k for k in getattr(inner, "out_keys", ()) if not str(k).startswith("loss") and k != self.tensor_keys.signal
+        )
+        self.out_keys = [*self.out_keys, *shown]
         self.out_keys += ["weights"] if return_weights else []
 
     # -- TorchRL plumbing -------------------------------------------------------------------
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        if isinstance(self.inner, PerturbedTarget):  # it reads the same mask, target and event mask
+        if self._perturbed:  # it reads the same mask, target, event mask and ranking signal
             keys = self.tensor_keys
-            self.inner.set_keys(valid=keys.valid, action=keys.action, event_valid=keys.event_valid)
+            self.inner.set_keys(valid=keys.valid, action=keys.action, event_valid=keys.event_valid, signal=keys.signal)
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -262,6 +278,11 @@ class TARLoss(LossModule):
     def set_extra_state(self, state: dict) -> None:
         self._generator.set_state(state["generator"])
 
+    @property
+    def clean_inner(self) -> LossModule:
+        """The head's own loss: the inner loss, or the loss a :class:`PerturbedTarget` inner loss wraps."""
+        return self.inner.inner if self._perturbed else self.inner
+
     def advance(self, steps: int = 1) -> None:
         """Move the schedule on by ``steps`` optimiser steps (for ``auto_step=False``)."""
         self.schedule_step.add_(steps)
@@ -281,24 +302,34 @@ class TARLoss(LossModule):
         ``[B, L, A]``, each action dim's loss per step, the mean over the other event dims' valid entries (0 where
         a step has none), or ``None`` without event dims (:func:`~tar_rl.objectives.inner.dim_losses`). For
         inspection, like :meth:`step_losses`."""
-        clean = self.inner.inner if isinstance(self.inner, PerturbedTarget) else self.inner
-        out = clean(tensordict)
+        return self.inspect_steps(tensordict)[:2]
+
+    def inspect_steps(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor | None, Tensor]:
+        """``(steps, dims, ranked)`` from one pass of the inner loss on the clean batch: ``steps`` and ``dims`` as
+        :meth:`step_and_dim_losses`, ``ranked`` ``[B, L]`` what a step weighting scores, the inner loss's ranking
+        signal where it gives one, else ``steps`` (detached). For inspection: it neither weights the steps nor
+        advances the schedule."""
+        out = self.clean_inner(tensordict)
         key = inner_output.loss_entry(out, self.loss_key)
-        return self._step_losses(out, key, tensordict), inner_output.dim_losses(
-            out, key, tensordict, self.tensor_keys.event_valid
-        )
+        steps = self._step_losses(out, key, tensordict)
+        signal = inner_output.read_signal(out, self.tensor_keys.signal, tensordict)
+        dims = inner_output.dim_losses(out, key, tensordict, self.tensor_keys.event_valid)
+        return steps, dims, steps.detach() if signal is None else signal
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Weighted segment loss of Eq. 2 on a ``[B, L]`` TensorDict; does not modify it."""
         valid = inner_output.read_valid(tensordict, self.tensor_keys.valid)
         mix = self.schedule(self.schedule_step)
         training_step = self.training and torch.is_grad_enabled()
-        out = self.inner(tensordict, mix) if isinstance(self.inner, PerturbedTarget) else self.inner(tensordict)
+        out = self.inner(tensordict, mix) if self._perturbed else self.inner(tensordict)
         key = inner_output.loss_entry(out, self.loss_key)
         time = inner_output.read_time(tensordict, self.time_keys, self.weighting.name)
         inputs = {**time, **self.weighting_state.inputs(training_step)}
-        loss, losses, weights = self._weigh(out, key, tensordict, valid, mix, inputs, training_step)
-        extra, diagnostics = inner_output.other_entries(out, key, tensordict, valid)
+        signal = inner_output.read_signal(out, self.tensor_keys.signal, tensordict)
+        loss, losses, weights = self._weigh(out, key, tensordict, valid, mix, inputs, training_step, signal)
+        if signal is not None and self.nonfinite == "propagate":
+            loss = loss + inner_output.nonfinite_term(signal, valid)
+        extra, diagnostics = inner_output.other_entries(out, key, tensordict, valid, self.tensor_keys.signal)
         for value in extra:
             loss = loss + value
         with torch.no_grad():
@@ -323,26 +354,37 @@ class TARLoss(LossModule):
 
     # -- Helpers ----------------------------------------------------------------------------
 
-    def _weigh(self, out, key, tensordict, valid, mix, inputs, training_step) -> tuple[Tensor, Tensor, Tensor]:
+    def _weigh(self, out, key, tensordict, valid, mix, inputs, training_step, signal) -> tuple[Tensor, Tensor, Tensor]:
         """``(loss, step losses, step weights)``: Eq. 2 with the weighting's weights, which see detached losses
-        (the stop-gradient of Eq. 3). An element weighting weighs each element; a step's weight is then the
-        mean of its valid elements' weights."""
-        event_key, generator = self.tensor_keys.event_valid, self._generator if self.weighting.stochastic else None
+        (the stop-gradient of Eq. 3), or the inner loss's detached ranking ``signal`` where it gives one. The
+        weighting scores its entries (:meth:`_entries`: the steps, or the elements of each step); a step's loss
+        is then the mean of its valid entries' ``weight * loss`` and its weight the mean of their weights (a step
+        weighting's entry is the step itself)."""
+        values, entry_valid = self._entries(out, key, tensordict, valid, signal)
+        ranked = inner_output.scores(values, signal, entry_valid, self.tensor_keys.signal, self.nonfinite)
+        scored = inner_output.scored(ranked, entry_valid, self.nonfinite)
+        generator = self._generator if self.weighting.stochastic else None
+        result = self._weight_function(values.device)(scored, entry_valid, self.params, mix, generator, **inputs)
+        entry_weights = self.weighting_state.weights(result, training_step)
+        steps = valid.ndim
+        weighted = element_mean(entry_weights.to(values.dtype) * values, entry_valid, steps)  # [B, L]
+        loss = segment_mean(weighted, torch.ones_like(weighted), valid)
+        return loss, element_mean(values, entry_valid, steps), element_mean(entry_weights, entry_valid, steps)
+
+    def _entries(self, out, key, tensordict, valid: Tensor, signal: Tensor | None) -> tuple[Tensor, Tensor]:
+        """What the weighting weighs and their mask: the per-step losses ``[B, L]`` (event dims reduced) and
+        ``valid``; for an element weighting, the per-element losses ``[B, L, *event, A]`` and the mask of their
+        valid elements on valid steps (a ranking signal, one value per step, is refused)."""
         if not self.weighting.elementwise:
-            losses = self._step_losses(out, key, tensordict)
-            scored = inner_output.scored(losses.detach(), valid, self.nonfinite)
-            result = self._weight_function(losses.device)(scored, valid, self.params, mix, generator, **inputs)
-            weights = self.weighting_state.weights(result, training_step)
-            return segment_mean(losses, weights, valid), losses, weights
-        name = self.weighting.name
+            return self._step_losses(out, key, tensordict), valid
+        event_key, name = self.tensor_keys.event_valid, self.weighting.name
+        if signal is not None:
+            raise ValueError(
+                f"objective {name!r} scores per-element losses, but the inner loss gives a ranking signal "
+                f"{self.tensor_keys.signal!r} of one value per step: rank by the loss (no signal) with it."
+            )
         elements, event_valid = inner_output.element_losses(out, key, tensordict, event_key, name)
-        element_valid = event_valid & valid.reshape(valid.shape + (1,) * (elements.ndim - valid.ndim))
-        scored = inner_output.scored(elements.detach(), element_valid, self.nonfinite)
-        result = self._weight_function(elements.device)(scored, element_valid, self.params, mix, generator, **inputs)
-        element_weights = self.weighting_state.weights(result, training_step)
-        weights = element_mean(element_weights, event_valid)
-        loss = segment_mean(element_mean(element_weights * elements, event_valid), torch.ones_like(weights), valid)
-        return loss, element_mean(elements, event_valid), weights
+        return elements, event_valid & valid.reshape(valid.shape + (1,) * (elements.ndim - valid.ndim))
 
     def _step_losses(self, out: TensorDictBase, key: NestedKey, tensordict: TensorDictBase) -> Tensor:
         """The inner per-step loss at ``key`` as ``[B, L]``, event dims reduced (over ``event_valid``'s entries)."""
@@ -351,8 +393,7 @@ class TARLoss(LossModule):
     def _weight_function(self, device: torch.device):
         """The weighting's function, compiled where ``compile_weights`` says so."""
         spec = self.weighting
-        eager = spec.stochastic or spec.name == "uniform" or spec.reads_time or spec.initial_state is not None
-        if eager or not compiles_weights(self.compile_weights, device):
+        if spec.eager or not compiles_weights(self.compile_weights, device):
             return spec.weights
         if self._compiled_weights is None:
             self._compiled_weights = torch.compile(spec.weights, dynamic=False)
@@ -369,6 +410,19 @@ def _checked_params(spec: Weighting, params):
             f"({', '.join(spec.params.__dataclass_fields__) or 'none'}), got {type(params).__name__}."
         )
     return params
+
+
+def _check_supervision(spec: Weighting, inner) -> None:
+    """Refuse a perturbation control whose inner loss is not a :class:`PerturbedTarget` of its kind: its weights
+    alone are the uniform mean."""
+    which = inner.which if isinstance(inner, PerturbedTarget) else None
+    if spec.perturb is None or spec.perturb == which:
+        return
+    raise ValueError(
+        f"the {spec.name} weighting trains on a corrupted target: wrap the inner loss as "
+        f"PerturbedTarget(inner, {spec.perturb!r}, PerturbParams(...)) (tar_rl.recipes.make_objective does), "
+        f"got {type(inner).__name__}" + (f" ({which})." if which else ".")
+    )
 
 
 def _check_arguments(inner, schedule, compile_weights: str, nonfinite: str) -> None:

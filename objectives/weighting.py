@@ -232,10 +232,11 @@ class Weighting:
         params: the frozen dataclass of the weighting's parameters (its defaults are the weighting's; its
             ``__post_init__`` refuses a value out of range, naming the field). The recipe's config group of
             the weighting is generated from its fields.
-        perturb: ``"high"``/``"low"`` for the supervision-perturbation controls: the objective wraps its
-            inner loss in :class:`~tar_rl.objectives.supervision.PerturbedTarget`, which corrupts the expert
-            targets of the steps :func:`perturb_mask` selects, and averages uniformly; ``None`` otherwise.
-        stochastic: whether the weighting draws random numbers (from ``generator``).
+        perturb: ``"high"``/``"low"`` for the supervision-perturbation controls, whose inner loss is the head's
+            wrapped in :class:`~tar_rl.objectives.supervision.PerturbedTarget` of that kind (the training job
+            builds it; it corrupts the expert targets of the steps :func:`perturb_mask` selects) and whose
+            ``weights`` are the uniform mean; ``None`` otherwise.
+        stochastic: whether ``weights`` draws random numbers (from ``generator``).
         summary: one line for listings and error messages.
         reads_time: whether ``weights`` reads each step's position in its episode (``step``,
             ``episode_length``).
@@ -246,6 +247,8 @@ class Weighting:
         elementwise: ``weights`` scores per-element losses ``[B, L, *event, A]`` with a mask of that shape and
             returns per-element weights (:mod:`~tar_rl.objectives.elementwise`); ``False``: per-step losses
             ``[..., L]`` in, per-step weights out.
+        compilable: ``False`` for a weighting not worth compiling (``uniform``: nothing to fuse); see
+            :attr:`eager`.
     """
 
     name: str
@@ -257,6 +260,13 @@ class Weighting:
     reads_time: bool = False
     initial_state: Callable[..., Tensor] | None = None
     elementwise: bool = False
+    compilable: bool = True
+
+    @property
+    def eager(self) -> bool:
+        """Whether ``weights`` always runs eagerly, never through ``torch.compile``: it draws random numbers, reads
+        time, holds state, or is not :attr:`compilable`."""
+        return not self.compilable or self.stochastic or self.reads_time or self.initial_state is not None
 
 
 def _uniform(losses, valid, params, mix, generator):
@@ -282,7 +292,7 @@ def _shuffle(losses, valid, params, mix, generator):
 
 WEIGHTINGS: Registry[Weighting] = Registry("weighting")
 for _w in (
-    Weighting("uniform", _uniform, summary="uniform temporal mean over valid steps (Eq. 1)"),
+    Weighting("uniform", _uniform, summary="uniform temporal mean over valid steps (Eq. 1)", compilable=False),
     Weighting("tar", _tar, TARParams, summary="time-adaptive reweighting (Eqs. 3-8)"),
     Weighting(
         "shuffle",
@@ -298,16 +308,16 @@ for _w in (
         _uniform,
         PerturbParams,
         perturb="high",
-        stochastic=True,
         summary="noise on the expert actions of the steps TAR up-weights, uniform mean",
+        compilable=False,
     ),
     Weighting(
         "perturb_low",
         _uniform,
         PerturbParams,
         perturb="low",
-        stochastic=True,
         summary="noise on the expert actions of the steps TAR down-weights, uniform mean",
+        compilable=False,
     ),
 ):
     WEIGHTINGS.register(_w.name, _w)

@@ -13,7 +13,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors.suites import SUITES
 from tar_rl.data import DatasetError, DemoDataset, load_dataset
-from tar_rl.objectives import MixSchedule, TARLoss
+from tar_rl.objectives import WEIGHTINGS, MixSchedule, PerturbedTarget, TARLoss
 from tar_rl.policies import DataInfo, Policy, build_policy
 
 from .config import DataConfig, EvalConfig, ObjectiveConfig, OptimConfig, objective_params
@@ -71,21 +71,37 @@ def make_policy(policy: Any, info: DataInfo) -> Policy:
 
 def make_objective(obj: ObjectiveConfig, steps: int, seed: int, policy: Policy) -> TARLoss:
     """``TARLoss`` around the head's per-step loss with the weighting's parameters (:func:`objective_params`), its
-    schedule in fractions of ``steps`` (``optim.steps``); ``seed`` (the job's) seeds the controls' draws."""
+    schedule in fractions of ``steps`` (``optim.steps``); ``seed`` (the job's) seeds the controls' draws. The head's
+    loss returns the ranking signal ``objective.signal`` beside it (none for ``loss``); a perturbation control's
+    inner loss is the head's wrapped in ``PerturbedTarget`` (its supervision corrupted)."""
     schedule = MixSchedule(start=round(obj.start * steps), ramp=round(obj.ramp * steps), shape=obj.shape)
+    params = objective_params(obj)
+    nonfinite = "propagate"  # a NaN/inf step loss reaches the trainer's optim.skip_nonfinite handling
+    inner = policy.loss if obj.signal == "loss" else _with_signal(policy.loss, obj.signal)
+    which = WEIGHTINGS[obj.name].perturb
+    if which is not None:
+        inner = PerturbedTarget(inner, which, params, loss_key=policy.loss_key, nonfinite=nonfinite, seed=seed)
     loss = TARLoss(
-        policy.loss,
+        inner,
         obj.name,
-        params=objective_params(obj),
+        params=params,
         schedule=schedule,
         seed=seed,
         loss_key=policy.loss_key,
         compile_weights=obj.compile,
-        nonfinite="propagate",  # a NaN/inf step loss reaches the trainer's optim.skip_nonfinite handling
+        nonfinite=nonfinite,
     )
     if policy.event_valid is not None:
         loss.set_keys(event_valid=policy.event_valid)
     return loss
+
+
+def _with_signal(loss, signal: str):
+    """The head's ``loss`` returning the ranking signal ``signal`` beside its loss (``ChunkLoss.with_signal``)."""
+    offered = getattr(loss, "signals", ("loss",))
+    if signal not in offered:
+        raise ValueError(f"objective.signal={signal!r} is not a ranking signal the head's loss offers: {list(offered)}")
+    return loss.with_signal(signal)
 
 
 def make_optimizer(opt: OptimConfig, params) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:

@@ -95,6 +95,10 @@ class ObjectiveConfig:
         compile: ``torch.compile`` the weighting (``tar``, ``invert``, the baselines): ``auto`` (on CUDA with
             triton: a GPU step otherwise pays ~0.5 ms of tiny kernel launches for it), ``always``
             or ``never``. Not part of a run's identity (the weights agree up to float rounding).
+        signal: what the weighting ranks a segment's steps by; the loss it weights is always the head's loss:
+            ``loss`` (the per-step loss itself) or a ranking signal the head offers (``flow``: ``action_error``,
+            the error of the chunk its velocity implies, ``tau ** 2`` times the loss; ``time_normalized``, the
+            loss over a running mean of the loss at its training time). A step weighting only.
     """
 
     name: str = "tar"
@@ -102,6 +106,7 @@ class ObjectiveConfig:
     ramp: float = 0.3
     shape: str = "linear"
     compile: str = "auto"
+    signal: str = "loss"
 
 
 def _config_field(f: dataclasses.Field) -> tuple[str, Any, Any]:

@@ -22,12 +22,13 @@ def record_weights(
 
     A row is ``(step, task, episode, t, loss, weight, gripper, loss_dim0, ..., loss_dim{A-1})``
     (:func:`tar_rl.runs.weights_columns`). The loss is the head's per-step loss at the current
-    weights; the weight is :func:`tar_rl.objectives.window_weights` of those losses with the
-    objective's gamma, w_max, eps and cap at full strength, whatever the run's own weighting and
-    schedule; the gripper is the last action dim of the demonstration's action; ``loss_dim<i>`` is
-    action dim ``i``'s loss at that step (:meth:`tar_rl.TARLoss.step_and_dim_losses`, from the same
-    pass of the head), absent for a head with one loss per step. A demonstration with a non-finite loss (a run
-    whose steps were all skipped by ``optim.skip_nonfinite``) has no TAR weights: its weights are NaN.
+    weights; the weight is :func:`tar_rl.objectives.window_weights` of what TAR ranks (those losses, or
+    the head's ranking signal with ``objective.signal``) with the objective's gamma, w_max, eps and cap at
+    full strength, whatever the run's own weighting and schedule; the gripper is the last action dim of the
+    demonstration's action; ``loss_dim<i>`` is action dim ``i``'s loss at that step
+    (:meth:`tar_rl.TARLoss.inspect_steps`, from the same pass of the head), absent for a head with one loss per
+    step. A demonstration with a non-finite loss or signal (a run whose steps were all skipped by
+    ``optim.skip_nonfinite``) has no TAR weights: its weights are NaN.
     """
     rows = []
     was_training = objective.training
@@ -38,10 +39,10 @@ def record_weights(
     try:
         with torch.no_grad():
             for task, episode, td in episodes:
-                losses, dims = objective.step_and_dim_losses(td.unsqueeze(0))
-                losses = losses.squeeze(0).float().cpu()
-                if bool(torch.isfinite(losses).all()):
-                    weight = window_weights(losses, slice_len, **tar.tar_kwargs())
+                losses, dims, ranked = objective.inspect_steps(td.unsqueeze(0))
+                losses, ranked = losses.squeeze(0).float().cpu(), ranked.squeeze(0).float().cpu()
+                if bool(torch.isfinite(losses).all() and torch.isfinite(ranked).all()):
+                    weight = window_weights(ranked, slice_len, **tar.tar_kwargs())
                 else:
                     weight = torch.full_like(losses, float("nan"))
                 gripper = td["action"][..., -1].float().cpu()

@@ -12,7 +12,7 @@ from typing import Any
 from tar_rl.collectors.suites import SUITES, Suite, suite_for
 from tar_rl.data import DemoDataset
 from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, check_gripper_dims
-from tar_rl.policies import DataInfo, Policy
+from tar_rl.policies import POLICIES, DataInfo, Policy
 
 from . import diagnose, post_training
 from .builders import given_dataset, make_objective, make_policy, torch_device
@@ -131,6 +131,7 @@ def validate(config: dict) -> Job:
     """
     cfg = typed_config(config)
     _check_objective(cfg.objective)
+    _check_signal(cfg.objective, cfg.policy.name)
     suite, given, tasks = _check_suite_and_tasks(cfg)
     _check_numbers(cfg, suite)
     if given is not None:
@@ -188,6 +189,25 @@ def _check_objective(obj: ObjectiveConfig) -> None:
         objective_params(obj)
     except ValueError as err:
         raise ConfigError(f"objective.{err}") from None
+
+
+def _check_signal(obj: ObjectiveConfig, head: str) -> None:
+    """``objective.signal``: ``loss`` or a ranking signal the head offers (``PolicySpec.signals``), for a step
+    weighting."""
+    offered = ["loss", *POLICIES[head].signals]
+    if obj.signal not in offered:
+        others = " or ".join(
+            f"with policy={name} {' or '.join(spec.signals)}" for name, spec in POLICIES.items() if spec.signals
+        )
+        raise ConfigError(
+            f"objective.signal={obj.signal!r} is not a ranking signal of the {head} head, which offers {offered}; "
+            f"use loss, or {others}"
+        )
+    if obj.signal != "loss" and WEIGHTINGS[obj.name].elementwise:
+        raise ConfigError(
+            f"objective.signal={obj.signal} ranks the steps, one value per step, but objective={obj.name} scores "
+            "per-element losses; use objective.signal=loss with it"
+        )
 
 
 def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset | None, dict]:

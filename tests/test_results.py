@@ -35,7 +35,10 @@ def reads_weights(rel: str, config: dict) -> bool:
     """Whether an analysis reads the committed run ``rel``'s weights (the budget's list, stated by hand):
     the R3 diagnosis (``python -m benchmarks.analysis diagnosis``) reads every R3 run (the MLP on MT50, 50
     demonstrations, 3,743 steps: uniform and tar, every seed); R4 and R5 (the ``act`` and ``flow`` heads) keep
-    seed 0 of each arm, whose weights ``tar-rl report`` draws."""
+    seed 0 of each arm, whose weights ``tar-rl report`` draws; R6 (``regimes/r6``) keeps seed 0 of each control
+    (its uniform and tar of seed 0 are R4's)."""
+    if rel.startswith("regimes/r6/runs/"):
+        return config["seed"] == 0 and config["objective"]["name"] not in ("uniform", "tar")
     if not rel.startswith("regimes/runs/"):
         return False
     head = config["policy"]["name"]
@@ -106,11 +109,11 @@ def test_every_committed_run_keeps_its_weight_statistics(runs):
 
 
 def test_the_reading_rule_matches_a_hand_count():
-    """R3's 8 pairs, R4's seed 0 and R5's seed 0 (three arms each) are committed: 22 runs whose
-    weights an analysis reads."""
+    """R3's 8 pairs, R4's seed 0 and R5's seed 0 (three arms each) and R6's seed-0 controls committed so far:
+    the runs whose weights an analysis reads."""
     configs = {rel: yaml.safe_load((p / "config.yaml").read_text()) for rel, p in committed_runs().items()}
     read = sorted(rel.rsplit("/", 1)[1].rsplit("-", 1)[0] for rel, c in configs.items() if reads_weights(rel, c))
     r3 = sorted(f"{objective}-mlp-s{seed}" for objective in ("tar", "uniform") for seed in range(8))
-    assert read == sorted(
-        [*r3, "tar-act-s0", "tar-act-s0", "uniform-act-s0", "tar-flow-s0", "tar-flow-s0", "uniform-flow-s0"]
-    )
+    r4_r5 = ["tar-act-s0", "tar-act-s0", "uniform-act-s0", "tar-flow-s0", "tar-flow-s0", "uniform-flow-s0"]
+    r6 = ["invert-act-s0", "random-act-s0", "shuffle-act-s0"]  # R6's seed-0 controls
+    assert read == sorted([*r3, *r4_r5, *r6])

@@ -1,6 +1,6 @@
-"""``python -m benchmarks.analysis diagnosis [...] | dims --from DIR [...] | noise --from DIR [...]``: R3 diagnosed
-(:mod:`.diagnosis`), its per-action-dimension recording (:mod:`.dims`), and how much of TAR's weighting a head's
-random draw decides (:mod:`.noise`)."""
+"""``python -m benchmarks.analysis diagnosis [--regime R4] [...] | dims --from DIR [...] | noise --from DIR [...]``: a
+regime diagnosed (:mod:`.diagnosis`; R3 by default), R3's per-action-dimension recording (:mod:`.dims`), and how
+much of TAR's weighting a head's random draw decides (:mod:`.noise`)."""
 
 import sys
 

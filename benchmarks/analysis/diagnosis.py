@@ -1,8 +1,9 @@
-"""Regime R3 diagnosed: where TAR's weight goes on the training demonstrations and which tasks it helps.
+"""A regime diagnosed (R3 by default; R4 and R5, the chunked heads, with ``--regime``): where TAR's weight goes on
+the training demonstrations and which tasks it helps.
 
 Usage::
 
-    python -m benchmarks.analysis diagnosis [--runs DIR] [--out DIR] [--dims FILE]
+    python -m benchmarks.analysis diagnosis [--regime R3|R4|R5] [--runs DIR] [--out DIR] [--dims FILE]
     python -m benchmarks.analysis dims --from DIR [--data DIR] [--out FILE]
 
 Reads the committed runs of the regime study (``--runs``, default ``results/regimes/runs``), keeps the
@@ -36,9 +37,25 @@ demonstrations of the run's ``weights.csv`` again (:func:`.dims.record_dims`), c
 gripper action equal the run's own at the last step, and writes ``dims.csv.gz`` (:data:`.dims.DIMS_COLUMNS`). The
 step at which TAR reaches full strength has no checkpoint: it is not recorded per dimension.
 
+A chunked-heads regime (``--regime R4``: ``act``; ``R5``: ``flow``) has three arms a seed (uniform, ``tar`` at
+tar-rl's defaults, ``tar_gentle``), and the study's results budget keeps the weights of seed 0 only. Its diagnosis
+(default ``--out``: ``results/regimes/diagnosis_<head>``) computes the phase and switch tables over the seeds whose
+runs all kept their weights (:attr:`.pairs.Pairs.weighted`, named in the output), the per-task Δ over every pair,
+and adds:
+
+* ``tasks.csv`` (``tar``) and ``tasks_tar_gentle.csv``: the R3 columns with the arm's per-task weight statistics
+  beside them (:func:`weight_stats`: mean weight at switch steps, largest weight, ESS fraction, and the uniform
+  policy's loss on the recorded demonstrations; the runs record no held-out loss per task);
+* ``correlations.csv``: per arm, the Spearman correlation of the task's Δ with each of :data:`TASK_STATS`, its p and
+  the Holm-adjusted p over the arm's statistics;
+* ``bins.csv``: per arm and bin of normalised episode time, every seed's mean TAR weight on training demonstrations
+  and held-out loss (its ``summary.json``'s fit diagnostics), mean and sd over the seeds;
+* ``scatter.png`` (Δ of ``tar`` against each statistic), ``bins.png`` (the bins) and ``weights_time.png``.
+
 The CSV and markdown files are deterministic (fixed float formats). The command refuses, naming what is
-missing, a folder without R3 runs, an incomplete pair, an unfinished run, a run without its weights, and a
-per-dimension recording of other runs.
+missing, a folder without the regime's runs (naming the regime), an incomplete pair, an unfinished run, a run without
+its weights (R3; a chunked-heads regime: no seed whose runs all kept them), and a per-dimension recording of other
+runs (or any with a chunked-heads regime).
 """
 
 from __future__ import annotations
@@ -46,7 +63,8 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
@@ -62,28 +80,45 @@ from benchmarks.analysis.dims import (
     plot_dims_time,
     read_dims,
 )
-from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW, Pairs, load_pairs
+from benchmarks.analysis.pairs import DEFAULT_RUNS, REGIMES, STEP_KEYS, WINDOW, Pairs, load_pairs, regime
 from benchmarks.studies.protocol import BASELINE, TREATMENT
-from benchmarks.studies.writers import fmt_num
-from tar_rl.report import PHASES, Run
+from benchmarks.studies.writers import fmt_num, fmt_p
+from tar_rl.report import PHASES, Run, holm
 from tar_rl.report.figures import plot_weight_phases
 from tar_rl.report.phases import label_steps
 
-__all__ = ["Diagnosis", "diagnose", "main", "write"]
+__all__ = ["TASK_STATS", "Diagnosis", "default_out", "diagnose", "main", "write"]
 
 DEFAULT_OUT = DEFAULT_DIMS.parent
+#: The per-task statistics a chunked-heads regime's Δ is ranked against (column of the task table -> what it is).
+TASK_STATS = {
+    "switch_share": "share of gripper-switch steps in the recorded demonstrations",
+    "weight_switch": "mean weight at gripper-switch steps",
+    "weight_max": "largest weight",
+    "weight_ess": "ESS fraction of the weights (per demonstration, mean)",
+    "uniform_loss": "uniform policy's per-step loss on the recorded demonstrations",
+    "uniform": "uniform success (%)",
+}
 #: Tasks in the weight-against-time figure (largest |Δ|, ties by name).
 FIGURE_TASKS = 4
 FLOAT = "%.6f"
 
 
+def default_out(label: str) -> Path:
+    """Where the diagnosis of regime ``label`` goes: ``results/regimes/diagnosis`` for R3, ``diagnosis_<head>``
+    for a chunked-heads regime (``diagnosis_act`` for R4)."""
+    if label == "R3":
+        return DEFAULT_OUT
+    return DEFAULT_RUNS.parent / f"diagnosis_{regime(label).settings['policy.name']}"
+
+
 def labelled(pairs: Pairs) -> pd.DataFrame:
-    """Every R3 run's labelled weights (:func:`tar_rl.report.phases.label_steps`) with ``objective``, ``seed`` and
-    ``at`` (full/last)."""
+    """The labelled weights (:func:`tar_rl.report.phases.label_steps`) of every run of the seeds with weights
+    (:attr:`Pairs.weighted`; every seed in R3) with ``objective`` (the arm), ``seed`` and ``at`` (full/last)."""
     names = {v: k for k, v in pairs.steps.items()}
     parts = []
-    for seed, slot in pairs.runs.items():
-        for objective, run in slot.items():
+    for seed in pairs.weighted:
+        for objective, run in pairs.runs[seed].items():
             w = run.weights[run.weights["step"].isin(list(names))]
             parts.append(label_steps(w, STEP_KEYS, WINDOW).assign(objective=objective, seed=seed))
     df = pd.concat(parts, ignore_index=True)
@@ -154,21 +189,21 @@ def final_success(run: Run) -> pd.Series:
     return pd.Series(100.0 * rows["success"].to_numpy(dtype=float), index=rows["name"].to_numpy())
 
 
-def task_table(pairs: Pairs, df: pd.DataFrame) -> pd.DataFrame:
-    """Per task: mean success (percent) of uniform and TAR over the pairs, Δ = TAR - uniform, its standard
-    deviation over pairs, the pairs where TAR is higher / lower, and the share of switch steps in the task's
-    recorded demonstrations (those of the first seed's TAR run; every R3 run shares the data seed, so records
-    the same demonstrations)."""
+def task_table(pairs: Pairs, df: pd.DataFrame, arm: str = TREATMENT) -> pd.DataFrame:
+    """Per task: mean success (percent) of uniform and of ``arm`` (the column named by the arm) over all the
+    pairs, Δ = arm - uniform, its standard deviation over pairs, the pairs where the arm is higher / lower, and the
+    share of switch steps in the task's recorded demonstrations (those of the first seed with weights' ``arm`` run;
+    every run of a regime shares the data seed, so records the same demonstrations)."""
     uniform = pd.DataFrame({s: final_success(p[BASELINE]) for s, p in pairs.runs.items()})
-    tar = pd.DataFrame({s: final_success(p[TREATMENT]) for s, p in pairs.runs.items()})
+    tar = pd.DataFrame({s: final_success(p[arm]) for s, p in pairs.runs.items()})
     delta = tar - uniform
-    demos = df[(df["objective"] == TREATMENT) & (df["at"] == "last") & (df["seed"] == min(pairs.runs))]
+    demos = df[(df["objective"] == arm) & (df["at"] == "last") & (df["seed"] == min(pairs.weighted))]
     share = demos.groupby("task")["switch"].agg(["sum", "size"])
     out = pd.DataFrame(
         {
             "task": uniform.index,
             "uniform": uniform.mean(axis=1).to_numpy(),
-            "tar": tar.mean(axis=1).to_numpy(),
+            arm: tar.mean(axis=1).to_numpy(),
             "delta": delta.mean(axis=1).to_numpy(),
             "delta_sd": delta.std(axis=1).to_numpy(),
             "pairs_higher": (delta > 0).sum(axis=1).to_numpy(),
@@ -181,13 +216,14 @@ def task_table(pairs: Pairs, df: pd.DataFrame) -> pd.DataFrame:
     return out.sort_values(["delta", "task"], ascending=[False, True], kind="stable").reset_index(drop=True)
 
 
-def correlations(tasks: pd.DataFrame) -> dict[str, tuple[float, float]]:
-    """Spearman rank correlation (rho, p) of Δ with the switch share and with uniform's success; ``nan``
-    with fewer than 3 tasks or a constant column (no ranking to correlate)."""
+def correlations(tasks: pd.DataFrame, columns: Sequence[str] = ("switch_share", "uniform")) -> dict:
+    """Spearman rank correlation (rho, p) of Δ with each of ``columns`` (default: the switch share and uniform's
+    success) over the tasks where both are known; ``nan`` with fewer than 3 such tasks or a constant column (no
+    ranking to correlate)."""
     from scipy.stats import spearmanr
 
     out = {}
-    for column in ("switch_share", "uniform"):
+    for column in columns:
         ok = tasks[["delta", column]].dropna()
         if len(ok) < 3 or ok["delta"].nunique() < 2 or ok[column].nunique() < 2:
             out[column] = (math.nan, math.nan)
@@ -195,6 +231,73 @@ def correlations(tasks: pd.DataFrame) -> dict[str, tuple[float, float]]:
         rho, p = spearmanr(ok["delta"], ok[column])
         out[column] = (float(rho), float(p))
     return out
+
+
+def weight_stats(pairs: Pairs, df: pd.DataFrame, arm: str) -> pd.DataFrame:
+    """Per task, from the last recording of the seeds with weights (pooled over them): the ``arm`` run's mean
+    weight at gripper-switch steps (``weight_switch``, ``nan`` without a switch step), its largest weight
+    (``weight_max``), the mean over its recorded demonstrations of their ESS fraction ``(sum w)^2 / (T sum w^2)``
+    (``weight_ess``: 1 for equal weights, ``1 / T`` for all the weight on one step), and the uniform run's mean
+    per-step loss on the same demonstrations (``uniform_loss``)."""
+    last = df[df["at"] == "last"]
+    mine = last[last["objective"] == arm]
+    per_demo = mine.groupby(["seed", "task", "episode"])["weight"].agg(
+        ess=lambda w: float(w.sum() ** 2 / (len(w) * (w**2).sum()))
+    )
+    switch = mine[mine["switch"]].groupby("task")["weight"].mean()
+    out = pd.DataFrame({"weight_max": mine.groupby("task")["weight"].max()})
+    out["weight_switch"] = switch.reindex(out.index)
+    out["weight_ess"] = per_demo.groupby("task")["ess"].mean()
+    out["uniform_loss"] = last[last["objective"] == BASELINE].groupby("task")["loss"].mean()
+    return out[["weight_switch", "weight_max", "weight_ess", "uniform_loss"]]
+
+
+def chunked_task_table(pairs: Pairs, df: pd.DataFrame, arm: str) -> pd.DataFrame:
+    """:func:`task_table` of ``arm`` with the task's :func:`weight_stats` beside it."""
+    tasks = task_table(pairs, df, arm)
+    return tasks.join(weight_stats(pairs, df, arm), on="task")
+
+
+def correlation_table(tasks_by_arm: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """Per arm and statistic of :data:`TASK_STATS`: the tasks both are known for, the Spearman rank correlation of
+    the arm's Δ with it (:func:`correlations`), its p and the Holm-adjusted p over the arm's statistics."""
+    rows = []
+    for arm, tasks in tasks_by_arm.items():
+        corr = correlations(tasks, tuple(TASK_STATS))
+        adjusted = holm([corr[c][1] for c in TASK_STATS])
+        for column, p_holm in zip(TASK_STATS, adjusted):
+            known = int(tasks[["delta", column]].notna().all(axis=1).sum())
+            rho, p = corr[column]
+            rows.append({"arm": arm, "statistic": column, "tasks": known, "rho": rho, "p": p, "holm_p": p_holm})
+    return pd.DataFrame(rows)
+
+
+def bins_table(pairs: Pairs) -> pd.DataFrame:
+    """Per arm and bin of normalised episode time, over every seed (each run's ``summary.json``, its fit
+    diagnostics' alignment): TAR's mean weight on the run's training demonstrations and the run's held-out
+    per-step loss, mean and standard deviation over the seeds; ``alignment``, the arm's mean Spearman correlation
+    of the two over the bins (:func:`tar_rl.diagnostics.alignment`)."""
+    rows = []
+    for arm in pairs.arms:
+        fits = [(pairs.runs[s][arm].summary.get("fit") or {}).get("alignment") or {} for s in pairs.runs]
+        weights = pd.DataFrame([f.get("weight_by_bin") for f in fits], dtype=float)
+        losses = pd.DataFrame([f.get("heldout_loss_by_bin") for f in fits], dtype=float)
+        rhos = pd.Series([f.get("spearman") for f in fits], dtype=float)
+        for b in weights.columns:
+            rows.append(
+                {
+                    "arm": arm,
+                    "bin": int(b),
+                    "start": b / len(weights.columns),
+                    "weight": weights[b].mean(),
+                    "weight_sd": weights[b].std(),
+                    "heldout_loss": losses[b].mean(),
+                    "heldout_loss_sd": losses[b].std(),
+                    "seeds": int(weights[b].notna().sum()),
+                    "alignment": rhos.mean(),
+                }
+            )
+    return pd.DataFrame(rows)
 
 
 # -- Markdown ---------------------------------------------------------------------------------------
@@ -344,21 +447,253 @@ def diagnosis_markdown(pairs: Pairs, phases, switches, tasks, corr, dims_section
     return "\n".join(out) + "\n"
 
 
+def _seed_list(seeds: Sequence[int]) -> str:
+    return ", ".join(str(s) for s in seeds)
+
+
+def _bin_span(b: int, bins: int) -> str:
+    """Bin ``b`` of ``bins`` as its span of normalised episode time (``0.0-0.1``)."""
+    return f"{fmt_num(b / bins, 1)}-{fmt_num((b + 1) / bins, 1)}"
+
+
+def _bins_md(bins: pd.DataFrame, arms: Sequence[str]) -> list[str]:
+    head = ["bin (episode time)", *(f"weight `{a}` (sd)" for a in arms), *(f"held-out loss `{a}`" for a in arms)]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    by = bins.set_index(["arm", "bin"])
+    count = bins["bin"].nunique()
+    for b in sorted(bins["bin"].unique()):
+        cells = [f"{b} ({_bin_span(b, count)})"]
+        cells += [f"{fmt_num(by.loc[(a, b), 'weight'], 2)} ({fmt_num(by.loc[(a, b), 'weight_sd'], 2)})" for a in arms]
+        cells += [fmt_num(by.loc[(a, b), "heldout_loss"], 4) for a in arms]
+        lines.append("| " + " | ".join(cells) + " |")
+    alignment = ", ".join(f"`{a}` {fmt_num(by.loc[(a, 0), 'alignment'], 2, True)}" for a in arms)
+    return [
+        *lines,
+        "",
+        f"Alignment (Spearman over the bins of weight and held-out loss, mean over seeds): {alignment}.",
+    ]
+
+
+def _correlation_md(corr: pd.DataFrame) -> list[str]:
+    lines = ["| arm | Δ against | tasks | Spearman rho | p | Holm p |", "|---|---|---|---|---|---|"]
+    for r in corr.to_dict("records"):
+        lines.append(
+            f"| {r['arm']} | {TASK_STATS[r['statistic']]} (`{r['statistic']}`) | {r['tasks']} "
+            f"| {fmt_num(r['rho'], 3, True)} | {fmt_p(r['p'])} | {fmt_p(r['holm_p'])} |"
+        )
+    return lines
+
+
+def _chunked_description(pairs: Pairs, phases, switches, tasks_by_arm: dict, corr: pd.DataFrame, bins) -> list[str]:
+    """Plain sentences reading the numbers of a chunked-heads regime's tables (values only)."""
+    arm = pairs.arms[1]
+    n, seeds = len(pairs.runs), pairs.weighted
+    rollouts = pairs.runs[min(pairs.runs)][arm].eval_settings["eval.rollouts"]
+    mine = bins[bins["arm"] == arm].sort_values("bin")
+    top_bin = mine.sort_values(["weight", "bin"], ascending=[False, True]).iloc[0]
+    low_bin = mine.sort_values(["weight", "bin"], ascending=[True, True]).iloc[0]
+    loss_bin = mine.sort_values(["heldout_loss", "bin"], ascending=[False, True]).iloc[0]
+    last = phases[(phases["objective"] == arm) & (phases["at"] == "last")]
+    top = last.sort_values(["ratio", "phase"], ascending=[False, True]).iloc[0]
+    low = last.sort_values(["ratio", "phase"], ascending=[True, True]).iloc[0]
+    ref = {p: _pick(phases, BASELINE, "last", p)["ratio"] for p in (top["phase"], low["phase"])}
+    pooled = switches[(switches["seed"] == "all") & (switches["objective"] == arm)]
+    ratios = {r["at"]: r["switch_ratio"] for r in pooled.to_dict("records")}
+    per_seed = switches[(switches["seed"] != "all") & (switches["objective"] == arm)]
+    above = int((per_seed["switch_ratio"] > 1).sum())
+    base = bins[bins["arm"] == BASELINE].set_index("bin")["heldout_loss"]
+    change = mine.set_index("bin")["heldout_loss"] - base
+    lower = change[change < 0]
+
+    def span(b) -> str:
+        return _bin_span(int(b), len(mine))
+
+    lines = [
+        f"- Over episode time (all {n} seeds), `{arm}`'s mean weight is highest in the bin "
+        f"{span(top_bin['bin'])} ({fmt_num(top_bin['weight'], 2)}, sd {fmt_num(top_bin['weight_sd'], 2)} over seeds) "
+        f"and lowest in {span(low_bin['bin'])} ({fmt_num(low_bin['weight'], 2)}); its held-out loss is highest in "
+        f"{span(loss_bin['bin'])} ({fmt_num(loss_bin['heldout_loss'], 4)}); alignment "
+        f"{fmt_num(top_bin['alignment'], 2, True)}. Against uniform's held-out loss per bin, `{arm}`'s is lower in "
+        f"{len(lower)} of {len(change)} bins"
+        + (
+            f" (most in {span(lower.idxmin())}: {fmt_num(base[lower.idxmin()], 4)} -> "
+            f"{fmt_num(base[lower.idxmin()] + lower.min(), 4)})"
+            if len(lower)
+            else ""
+        )
+        + f" and higher in {int((change > 0).sum())}.",
+        f"- At the last step (seed{'s' if len(seeds) > 1 else ''} {_seed_list(seeds)}), `{arm}`'s weight mass per "
+        f"phase relative to the phase's share of steps is highest in {top['phase']} ({fmt_num(top['ratio'], 2)}) "
+        f"and lowest in {low['phase']} ({fmt_num(low['ratio'], 2)}); on the uniform policy's losses the same ratios "
+        f"are {fmt_num(ref[top['phase']], 2)} and {fmt_num(ref[low['phase']], 2)}.",
+        f"- The mean weight at gripper-switch steps is {fmt_num(ratios.get('full'), 2)} times that at the other steps "
+        f"when TAR reaches full strength and {fmt_num(ratios.get('last'), 2)} times at the last step; above 1 in "
+        f"{above} of {len(per_seed)} (seed, step) recordings.",
+    ]
+    for name, tasks in tasks_by_arm.items():
+        helped, hurt = int((tasks["delta"] > 0).sum()), int((tasks["delta"] < 0).sum())
+        mine_corr = corr[corr["arm"] == name]
+        found = mine_corr[mine_corr["holm_p"] < 0.05]
+        listed = "; ".join(
+            f"{r['statistic']} {fmt_num(r['rho'], 2, True)} (p {fmt_p(r['p'])}, Holm {fmt_p(r['holm_p'])})"
+            if math.isfinite(r["rho"])
+            else f"{r['statistic']} not ranked (constant over the tasks)"
+            for r in mine_corr.to_dict("records")
+        )
+        verdict = "none at Holm p < 0.05" if found.empty else f"at Holm p < 0.05: {', '.join(found['statistic'])}"
+        lines.append(
+            f"- `{name}`: over {len(tasks)} tasks, higher than uniform in {helped}, lower in {hurt}, equal in "
+            f"{len(tasks) - helped - hurt} (mean Δ {fmt_num(tasks['delta'].mean(), 2, True)}). Spearman correlation "
+            f"of the task's Δ with {listed}: {verdict}."
+        )
+    first = tasks_by_arm[arm]
+    both = pd.DataFrame({"delta": first["switch_share"], "uniform": first["uniform"]})
+    rho, p = correlations(both, ("uniform",))["uniform"]
+    lines.append(
+        f"- The switch share and uniform's success themselves correlate over the tasks at rho "
+        f"{fmt_num(rho, 2, True)} (p {fmt_p(p)}): their rankings of the tasks overlap."
+    )
+    lines.append(
+        f"- A task's Δ rests on {n} pairs of {rollouts} evaluation rollouts per run: one rollout is "
+        f"{fmt_num(100 / rollouts, 1)} points of one run's success, {fmt_num(100 / rollouts / n, 2)} points of the "
+        f"mean over {n} pairs."
+    )
+    return lines
+
+
+def chunked_markdown(diag: Diagnosis) -> str:
+    """``diagnosis.md`` of a chunked-heads regime: what the numbers show, the weight over episode time (every
+    seed), per phase and at gripper switches (the seeds with weights), and per task (every pair)."""
+    pairs = diag.pairs
+    label, arms, seeds = pairs.regime, pairs.arms, pairs.weighted
+    head = pairs.runs[min(pairs.runs)][BASELINE].policy
+    names = {s: " / ".join(slot[a].name for a in arms) for s, slot in pairs.runs.items()}
+    tasks_by_arm = {arms[1]: diag.tasks, **{a: diag.extra[f"tasks_{a}"] for a in arms[2:]}}
+    with_weights = f"seed{'s' if len(seeds) > 1 else ''} {_seed_list(seeds)}"
+    config = pairs.runs[min(seeds)][arms[1]].config
+    settings = config.get("diagnostics") or {}
+    recorded = (config.get("logging") or {}).get("record_episodes")
+    kept = (
+        f"only {with_weights} of the {len(pairs.runs)} keep their recorded weights (`weights.csv`, the study's results "
+        f"budget), so these tables are over {with_weights} alone"
+        + (" and have no spread over seeds" if len(seeds) == 1 else "")
+        if len(seeds) < len(pairs.runs)
+        else f"every seed keeps its recorded weights (`weights.csv`): these tables are over {with_weights}"
+    )
+    out = [
+        f"# {label} diagnosis (`{head}`): where TAR's weight goes and which tasks it helps",
+        "",
+        f"From the {len(pairs.runs)} committed {label} seeds ({' / '.join(arms)}: {'; '.join(names.values())}), "
+        f"computed by `python -m benchmarks.analysis diagnosis --regime {label}`. `tar` is TAR at tar-rl's "
+        "defaults, `tar_gentle` the gentle preset (gamma 0.5, exact cap, w_max 1.5).",
+        "",
+        f"- **Weights per step** (phases, gripper switches, the per-task weight statistics): {kept}. A run records "
+        f"TAR's weights, at its own settings and at full strength, on the per-step losses of {recorded} training "
+        f"demonstrations per task at training step {pairs.steps['full']} (TAR reaches full strength) and "
+        f"{pairs.steps['last']} (the last); the uniform run's are what TAR at tar-rl's defaults would weigh on the "
+        "uniform policy's losses (the reference).",
+        "- **Weight over episode time**: every seed, from each run's `summary.json` (its fit diagnostics: TAR's mean "
+        f"weight per bin of normalised episode time on {settings.get('train_episodes')} training demonstrations per "
+        f"task, the held-out per-step loss on {settings.get('heldout_demos')} held-out demonstrations per task, both "
+        "at the end of training).",
+        f"- **Per-task Δ**: all {len(pairs.runs)} pairs, success at the final evaluation.",
+        "",
+        "## What the numbers show",
+        "",
+        *_chunked_description(
+            pairs, diag.phases, diag.switches, tasks_by_arm, diag.extra["correlations"], diag.extra["bins"]
+        ),
+        "",
+        "## Weight over episode time (every seed)",
+        "",
+        f"Mean over the {len(pairs.runs)} seeds (sd over seeds) of each run's mean TAR weight per bin of normalised "
+        "episode time, and of its held-out per-step loss (`bins.csv`).",
+        "",
+        *_bins_md(diag.extra["bins"], arms),
+        "",
+        f"## Weight per phase ({with_weights})",
+        "",
+        "Phases from the gripper action (approach, contact onset, transport, completion; anchored at the first "
+        "gripper-closing step). Shares pooled over the 50 tasks' recorded demonstrations; with one seed the sd is "
+        "not defined (`-`).",
+        "",
+        *_phase_md(diag.phases, pairs.steps),
+        "",
+        f"## Gripper switches ({with_weights})",
+        "",
+        "A switch step is a step whose gripper action is closing (> 0) while the previous step's is not (<= 0, "
+        "zero counts as open), or the reverse, within one demonstration; the first step is never one. "
+        f"'Within ±{WINDOW}' is the steps at most {WINDOW} steps from a switch step.",
+        "",
+        *_switch_md(diag.switches, pairs.steps),
+        "",
+        "## Per task",
+        "",
+        f"Δ = arm - uniform success (points), mean over the {len(pairs.runs)} pairs at the final evaluation, ranked "
+        f"against the task's statistics (Spearman, over the tasks where the statistic is known; Holm over the "
+        f"{len(TASK_STATS)} statistics of an arm). The weight statistics are the arm's own run's at the last step "
+        f"({with_weights}); `uniform_loss` is the uniform run's per-step loss on the recorded training "
+        "demonstrations: the runs record the held-out loss overall and per phase only, not per task.",
+        "",
+        *_correlation_md(diag.extra["correlations"]),
+        "",
+    ]
+    for name, tasks in tasks_by_arm.items():
+        out += [
+            f"`{name}` higher: {_task_list(tasks[tasks['delta'] > 0])}.",
+            "",
+            f"`{name}` lower: {_task_list(tasks[tasks['delta'] < 0].iloc[::-1])}.",
+            "",
+        ]
+    others = ", ".join(f"`tasks_{a}.csv`" for a in arms[2:])
+    out += [
+        f"All tasks are in `tasks.csv` (`{arms[1]}`) and {others}; the correlations in `correlations.csv`. Figures: "
+        "`scatter.png` (Δ of `tar` against each statistic), `bins.png` (weight and held-out loss over episode time, "
+        f"every seed), `weights_time.png` (weight, loss and gripper action along one demonstration of the tasks "
+        f"with the largest |Δ|, `{arms[1]}` run of seed {min(seeds)}, last step).",
+    ]
+    return "\n".join(out) + "\n"
+
+
 # -- Figures ----------------------------------------------------------------------------------------
 
 
-def plot_scatter(tasks: pd.DataFrame, corr: dict, path: Path, caption: str) -> Path:
-    """Δ success against the task's switch share and against uniform's success, one point per task."""
+#: The scatter panels of R3: (column of the task table, axis label).
+SCATTER_R3 = (
+    ("switch_share", "share of gripper-switch steps in the recorded demonstrations"),
+    ("uniform", "uniform success (%)"),
+)
+
+
+def plot_scatter(
+    tasks: pd.DataFrame,
+    corr: dict,
+    path: Path,
+    caption: str,
+    panels: Sequence[tuple[str, str]] = SCATTER_R3,
+    ylabel: str = "Δ success, TAR - uniform (points)",
+) -> Path:
+    """Δ success against per-task statistics, one panel per ``(column, label)`` of ``panels`` (default: the switch
+    share and uniform's success, side by side; more panels go three to a row), one point per task, titled with
+    ``corr[column]`` (rho, p)."""
     from tar_rl.report.plots import new_figure, save_png
 
-    fig = new_figure(9.0, 4.0)
-    fig.subplots_adjust(left=0.08, right=0.98, top=0.88, bottom=0.16, wspace=0.25)
-    axes = fig.subplots(1, 2)
+    if len(panels) <= 2:
+        fig = new_figure(9.0, 4.0)
+        fig.subplots_adjust(left=0.08, right=0.98, top=0.88, bottom=0.16, wspace=0.25)
+        axes = list(fig.subplots(1, len(panels), squeeze=False)[0])
+        first = [axes[0]]
+    else:
+        rows = math.ceil(len(panels) / 3)
+        fig = new_figure(12.0, 3.6 * rows + 0.4)
+        fig.subplots_adjust(left=0.06, right=0.98, top=0.93, bottom=0.1, wspace=0.22, hspace=0.45)
+        grid = fig.subplots(rows, 3, squeeze=False)
+        axes = list(grid.ravel())
+        for ax in axes[len(panels) :]:
+            ax.set_visible(False)
+        first = list(grid[:, 0])
     extremes = tasks.reindex(tasks["delta"].abs().sort_values(ascending=False, kind="stable").index)[:FIGURE_TASKS]
-    for ax, column, label in (
-        (axes[0], "switch_share", "share of gripper-switch steps in the recorded demonstrations"),
-        (axes[1], "uniform", "uniform success (%)"),
-    ):
+    for ax, (column, label) in zip(axes, panels):
         ax.scatter(tasks[column], tasks["delta"], s=14, color="C0")
         side = {"ha": "left", "xytext": (3, 2)} if column == "switch_share" else {"ha": "right", "xytext": (-3, 2)}
         for r in extremes.to_dict("records"):
@@ -366,8 +701,47 @@ def plot_scatter(tasks: pd.DataFrame, corr: dict, path: Path, caption: str) -> P
         ax.axhline(0.0, color="k", linewidth=0.6)
         ax.set_xlabel(label, fontsize=8)
         rho, p = corr[column]
-        ax.set_title(f"Spearman rho {rho:+.2f} (p {p:.3f})", fontsize=9)
-    axes[0].set_ylabel("Δ success, TAR - uniform (points)", fontsize=8)
+        ax.set_title(f"Spearman rho {rho:+.2f} (p {fmt_p(p)})", fontsize=9)
+    for ax in first:
+        ax.set_ylabel(ylabel, fontsize=8)
+    return save_png(fig, path, caption)
+
+
+def plot_time_bins(bins: pd.DataFrame, path: Path, caption: str) -> Path:
+    """Two panels over normalised episode time: each arm's mean TAR weight per bin (mean over seeds, the error bar
+    one sd over seeds, the unit-mean line) and its held-out per-step loss (the same)."""
+    from tar_rl.report.plots import new_figure, save_png
+
+    fig = new_figure(10.0, 4.0)
+    fig.subplots_adjust(left=0.07, right=0.98, top=0.86, bottom=0.16, wspace=0.25)
+    axes = fig.subplots(1, 2)
+    arms = list(dict.fromkeys(bins["arm"]))
+    for i, arm in enumerate(arms):
+        one = bins[bins["arm"] == arm].sort_values("bin")
+        width = 1 / len(one)
+        x = one["start"].to_numpy() + width / 2 + (i - (len(arms) - 1) / 2) * width * 0.12
+        for ax, column in ((axes[0], "weight"), (axes[1], "heldout_loss")):
+            ax.errorbar(
+                x,
+                one[column],
+                yerr=one[f"{column}_sd"].fillna(0.0),
+                marker="o",
+                markersize=4,
+                linewidth=1.2,
+                capsize=2,
+                color=f"C{i}",
+                label=f"{arm} (alignment {one['alignment'].iloc[0]:+.2f})",
+            )
+    axes[0].axhline(1.0, color="k", linewidth=0.6, linestyle=":")
+    axes[0].set_ylabel("TAR's mean weight (training demonstrations)", fontsize=8)
+    axes[1].set_ylabel("held-out per-step loss", fontsize=8)
+    seeds = int(bins["seeds"].max())
+    for ax, title in ((axes[0], "weight per bin of episode time"), (axes[1], "held-out loss per bin")):
+        ax.set_xlabel("normalised episode time", fontsize=8)
+        ax.set_xlim(0, 1)
+        ax.set_title(f"{title} (mean, sd over {seeds} seeds)", fontsize=9)
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=7, loc="upper right")
     return save_png(fig, path, caption)
 
 
@@ -382,7 +756,8 @@ def figure_tasks(tasks: pd.DataFrame, count: int = FIGURE_TASKS) -> list[str]:
 
 @dataclass
 class Diagnosis:
-    """What the command computes: the tables, the correlations and the markdown."""
+    """What the command computes: the tables, the correlations and the markdown. ``tasks`` and ``corr`` are the
+    first treatment arm's (R3: ``tar``); a chunked-heads regime's further tables are in ``extra``."""
 
     pairs: Pairs
     phases: pd.DataFrame
@@ -393,22 +768,31 @@ class Diagnosis:
     dims: pd.DataFrame | None = None  # the labelled per-dimension recording (label_dims), if given
     dims_groups: pd.DataFrame | None = None
     dims_deciles: pd.DataFrame | None = None
+    #: A chunked-heads regime's further CSVs by name: ``tasks_<arm>`` for each arm after the first, ``correlations``
+    #: (:func:`correlation_table`) and ``bins`` (:func:`bins_table`).
+    extra: dict[str, pd.DataFrame] = field(default_factory=dict)
 
     def csv_texts(self) -> dict[str, str]:
-        """``phases.csv``, ``switches.csv``, ``tasks.csv`` and, with the per-dimension recording,
-        ``dims_groups.csv`` and ``dims_deciles.csv``, as text (fixed float format)."""
+        """``phases.csv``, ``switches.csv``, ``tasks.csv``, with the per-dimension recording ``dims_groups.csv`` and
+        ``dims_deciles.csv``, and the :attr:`extra` tables, as text (fixed float format)."""
         tables = [("phases", self.phases), ("switches", self.switches), ("tasks", self.tasks)]
         if self.dims_groups is not None:
             tables += [("dims_groups", self.dims_groups), ("dims_deciles", self.dims_deciles)]
+        tables += list(self.extra.items())
         return {
             f"{name}.csv": table.to_csv(index=False, float_format=FLOAT, lineterminator="\n") for name, table in tables
         }
 
 
-def diagnose(runs_dir: Path, dims_path: Path | None = None) -> Diagnosis:
-    """Everything but the figures, from the R3 runs of ``runs_dir`` (:func:`load_pairs` refuses what is missing)
-    and, with ``dims_path``, their per-dimension recording (:func:`read_dims`; it must record those runs)."""
-    pairs = load_pairs(runs_dir)
+def diagnose(runs_dir: Path, dims_path: Path | None = None, label: str = "R3") -> Diagnosis:
+    """Everything but the figures, from the runs of regime ``label`` in ``runs_dir`` (:func:`load_pairs` refuses
+    what is missing) and, with ``dims_path`` (R3 only), their per-dimension recording (:func:`read_dims`; it must
+    record those runs)."""
+    pairs = load_pairs(runs_dir, label)
+    if label != "R3":
+        if dims_path is not None:
+            raise SystemExit(f"diagnosis: the per-dimension recording is R3's; {label} has none (leave out --dims)")
+        return _diagnose_chunked(pairs)
     df = labelled(pairs)
     phases, switches, tasks = phase_table(df), switch_table(df), task_table(pairs, df)
     corr = correlations(tasks)
@@ -423,6 +807,22 @@ def diagnose(runs_dir: Path, dims_path: Path | None = None) -> Diagnosis:
     return Diagnosis(pairs, phases, switches, tasks, corr, markdown, dims, groups, deciles)
 
 
+def _diagnose_chunked(pairs: Pairs) -> Diagnosis:
+    """A chunked-heads regime's :class:`Diagnosis` (:func:`chunked_markdown`)."""
+    df = labelled(pairs)
+    phases, switches = phase_table(df), switch_table(df)
+    by_arm = {arm: chunked_task_table(pairs, df, arm) for arm in pairs.arms[1:]}
+    corr_table = correlation_table(by_arm)
+    first = pairs.arms[1]
+    extra = {f"tasks_{arm}": by_arm[arm] for arm in pairs.arms[2:]}
+    extra |= {"correlations": corr_table, "bins": bins_table(pairs)}
+    mine = corr_table[corr_table["arm"] == first]
+    corr = {r["statistic"]: (r["rho"], r["p"]) for r in mine.to_dict("records")}
+    diag = Diagnosis(pairs, phases, switches, by_arm[first], corr, "", extra=extra)
+    diag.markdown = chunked_markdown(diag)
+    return diag
+
+
 def write(diag: Diagnosis, out: Path, figures: bool = True) -> list[Path]:
     """Write the CSV files, ``diagnosis.md`` and (with ``figures``) the PNGs into ``out``, each atomically."""
     from tar_rl.io import atomic_write
@@ -430,31 +830,43 @@ def write(diag: Diagnosis, out: Path, figures: bool = True) -> list[Path]:
     written = []
     for name, text in {**diag.csv_texts(), "diagnosis.md": diag.markdown}.items():
         written.append(atomic_write(out / name, lambda f, text=text: f.write(text)))
-    if figures:
-        first = diag.pairs.runs[min(diag.pairs.runs)][TREATMENT]
-        caption = f"R3, {len(diag.pairs.runs)} pairs; git: {first.git_commit or 'unknown'}"
+    if not figures:
+        return written
+    pairs = diag.pairs
+    arm = pairs.arms[1]
+    first = pairs.runs[min(pairs.weighted)][arm]
+    commit = first.git_commit or "unknown"
+    if pairs.regime == "R3":
+        caption = f"R3, {len(pairs.runs)} pairs; git: {commit}"
         written.append(plot_scatter(diag.tasks, diag.corr, out / "scatter.png", caption))
+    else:
+        caption = f"{pairs.regime} {first.policy}, {arm}: {len(pairs.runs)} pairs; weight statistics of seed "
+        caption += f"{_seed_list(pairs.weighted)}; git: {commit}"
+        panels = [(c, TASK_STATS[c]) for c in TASK_STATS]
+        ylabel = f"Δ success, {arm} - uniform (points)"
+        written.append(plot_scatter(diag.tasks, diag.corr, out / "scatter.png", caption, panels, ylabel))
+        bins_caption = f"{pairs.regime} {first.policy}: each run's summary.json, {len(pairs.runs)} seeds; git: {commit}"
+        written.append(plot_time_bins(diag.extra["bins"], out / "bins.png", bins_caption))
+    written.append(
+        plot_weight_phases(
+            first.weights,
+            out / "weights_time.png",
+            figure_tasks(diag.tasks),
+            step=pairs.steps["last"],
+            caption=f"{first.name}, weights at the last step",
+            gripper=True,
+        )
+    )
+    if diag.dims is not None:
         written.append(
-            plot_weight_phases(
-                first.weights,
-                out / "weights_time.png",
-                figure_tasks(diag.tasks),
-                step=diag.pairs.steps["last"],
-                caption=f"{first.name}, weights at the last step",
-                gripper=True,
+            plot_dims_time(
+                diag.dims,
+                first.name,
+                figure_tasks(diag.tasks, DIMS_FIGURE_TASKS),
+                out / "dims_time.png",
+                f"{first.name}, final checkpoint (step {pairs.steps['last']}); git: {commit}",
             )
         )
-        if diag.dims is not None:
-            written.append(
-                plot_dims_time(
-                    diag.dims,
-                    first.name,
-                    figure_tasks(diag.tasks, DIMS_FIGURE_TASKS),
-                    out / "dims_time.png",
-                    f"{first.name}, final checkpoint (step {diag.pairs.steps['last']}); "
-                    f"git: {first.git_commit or 'unknown'}",
-                )
-            )
     return written
 
 
@@ -462,18 +874,25 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point (module docstring)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(
-        prog="python -m benchmarks.analysis diagnosis", description="Where TAR's weight goes in R3, per task."
+        prog="python -m benchmarks.analysis diagnosis", description="Where TAR's weight goes in a regime, per task."
     )
+    p.add_argument("--regime", default="R3", choices=REGIMES, help="the regime (default: R3)")
     p.add_argument("--runs", default=str(DEFAULT_RUNS), help="the runs folder (default: results/regimes/runs)")
-    p.add_argument("--out", default=str(DEFAULT_OUT), help="output folder (default: results/regimes/diagnosis)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default: results/regimes/diagnosis for R3, diagnosis_<head> for R4 and R5)",
+    )
     p.add_argument(
         "--dims",
         default=None,
-        help="the per-dimension recording (default: results/regimes/diagnosis/dims.csv.gz with the default --runs)",
+        help="R3's per-dimension recording (default: results/regimes/diagnosis/dims.csv.gz with R3 and the default "
+        "--runs)",
     )
     args = p.parse_args(argv)
-    out = Path(args.out)
-    dims = Path(args.dims) if args.dims else (DEFAULT_DIMS if Path(args.runs) == DEFAULT_RUNS else None)
-    for path in write(diagnose(Path(args.runs), dims), out):
+    out = Path(args.out) if args.out else default_out(args.regime)
+    default_dims = DEFAULT_DIMS if args.regime == "R3" and Path(args.runs) == DEFAULT_RUNS else None
+    dims = Path(args.dims) if args.dims else default_dims
+    for path in write(diagnose(Path(args.runs), dims, args.regime), out):
         print(path)
     return 0

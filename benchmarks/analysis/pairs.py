@@ -1,25 +1,39 @@
-"""The regime study's R3 runs paired by seed, with their recorded weights: what the diagnosis
-(:mod:`.diagnosis`) and the per-dimension recording (:mod:`.dims`) read.
+"""A regime's runs paired by seed, with their recorded weights: what the diagnosis (:mod:`.diagnosis`) and the
+per-dimension recording (:mod:`.dims`) read.
 
-R3's runs are the runs whose config has R3's head, tasks, demonstrations and steps (the regime study's
-declaration, :data:`benchmarks.studies.regimes.SIZES`); each seed must have one uniform and one tar run, finished,
-with weights recorded at the step TAR reaches full strength and at the last step, trained at one commit on one
-machine.
+A regime's runs are the runs whose config has the regime's head, tasks, demonstrations and steps (the regime study's
+declaration, :data:`benchmarks.studies.regimes.SIZES`: R3 the state MLP, R4 and R5 the chunked heads, :data:`REGIMES`);
+each seed must have one run of each of the regime's arms (R3: uniform and tar; R4, R5: uniform, tar at tar-rl's
+defaults and tar_gentle, the run whose objective has the ``tar_gentle`` preset's settings), finished and trained at one
+commit on one machine. R3 needs the weights of every run, recorded at the step TAR reaches full strength and at the
+last step; a chunked-heads regime keeps them for some seeds only (the study's results budget: seed 0) and needs them
+for at least one seed, every arm (:attr:`Pairs.weighted`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
 from benchmarks.studies.compare import check_pairs
-from benchmarks.studies.protocol import BASELINE, TREATMENT
+from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
 from benchmarks.studies.regimes import SIZES
 from tar_rl.report import Run, load_run
 
-__all__ = ["DEFAULT_RUNS", "STEP_KEYS", "WINDOW", "Pairs", "load_pairs", "r3_settings"]
+__all__ = [
+    "DEFAULT_RUNS",
+    "REGIMES",
+    "STEP_KEYS",
+    "WINDOW",
+    "Pairs",
+    "Regime",
+    "arm_of",
+    "load_pairs",
+    "r3_settings",
+    "regime",
+]
 
 #: Steps on either side of a gripper switch that count as near it.
 WINDOW = 2
@@ -27,20 +41,68 @@ WINDOW = 2
 STEP_KEYS = ("step", "task", "episode")
 #: The committed runs of the regime study.
 DEFAULT_RUNS = Path(__file__).resolve().parent.parent / "results" / "regimes" / "runs"
+#: The settings that tell a regime's runs from the others'.
+KEYS = ("policy.name", "data.tasks", "data.n_demos", "optim.steps")
+
+
+def _settings(overrides: tuple[str, ...]) -> dict:
+    """A regime's defining settings from its Hydra overrides: head, tasks, demonstrations, steps, and the training
+    step at which TAR reaches full strength (the first recording step)."""
+    values = dict(o.split("=", 1) for o in overrides)
+    return {
+        "policy.name": values["policy"],
+        "data.tasks": yaml.safe_load(values["data.tasks"]),
+        "data.n_demos": int(values["data.n_demos"]),
+        "optim.steps": int(values["optim.steps"]),
+        "full_step": int(yaml.safe_load(values["logging.record_weights_at"])[0]),
+    }
 
 
 def r3_settings() -> dict:
     """R3's defining settings (from the study's overrides in ``regimes.py``): head, tasks, demonstrations, steps
     (R4 and R5 share the last three with another head), and the training step at which TAR reaches full strength
     (the first recording step)."""
-    overrides = dict(o.split("=", 1) for o in SIZES["cpu"].r3)
-    return {
-        "policy.name": overrides["policy"],
-        "data.tasks": yaml.safe_load(overrides["data.tasks"]),
-        "data.n_demos": int(overrides["data.n_demos"]),
-        "optim.steps": int(overrides["optim.steps"]),
-        "full_step": int(yaml.safe_load(overrides["logging.record_weights_at"])[0]),
-    }
+    return _settings(SIZES["cpu"].r3)
+
+
+@dataclass(frozen=True)
+class Regime:
+    """What the diagnosis reads of one regime.
+
+    Attributes:
+        label: ``R3``, ``R4``, ``R5``.
+        settings: :func:`r3_settings`'s keys for the regime.
+        arms: the arms of a seed, the baseline first.
+        weights_every_seed: every run must have its weights (R3); else at least one seed, every arm.
+    """
+
+    label: str
+    settings: dict
+    arms: tuple[str, ...]
+    weights_every_seed: bool
+
+    @property
+    def treatments(self) -> tuple[str, ...]:
+        return self.arms[1:]
+
+
+def regime(label: str) -> Regime:
+    """The regime ``label`` of the study at the cpu scale (:data:`REGIMES`).
+
+    Raises:
+        SystemExit: an unknown label (the known ones named).
+    """
+    sizes = SIZES["cpu"]
+    if label == "R3":
+        return Regime("R3", r3_settings(), (BASELINE, TREATMENT), True)
+    for name, head, extra in sizes.chunked_heads:
+        if name == label:
+            return Regime(label, _settings((f"policy={head}", *extra, *sizes.chunked)), CHUNKED_ARMS, False)
+    raise SystemExit(f"diagnosis: no regime {label!r}; the regimes are {', '.join(REGIMES)}")
+
+
+#: The regimes the diagnosis reads: R3 and the chunked heads'.
+REGIMES = ("R3", *(name for name, _, _ in SIZES["cpu"].chunked_heads))
 
 
 def _get(config: dict, dotted: str):
@@ -50,57 +112,88 @@ def _get(config: dict, dotted: str):
     return node
 
 
+def arm_of(config: dict) -> str:
+    """A run's arm from its config: the objective's name, ``tar_gentle`` for a ``tar`` run with the preset's gamma,
+    cap and w_max (its ``objective.name`` is ``tar``)."""
+    from tar_rl.recipes.config import OBJECTIVE_PRESETS
+
+    objective = config.get("objective") or {}
+    gentle = OBJECTIVE_PRESETS["tar_gentle"]
+    keys = ("gamma", "cap", "w_max")
+    if objective.get("name") == gentle.name and all(objective.get(k) == getattr(gentle, k) for k in keys):
+        return "tar_gentle"
+    return str(objective.get("name"))
+
+
 @dataclass
 class Pairs:
-    """R3's runs paired by seed; ``steps`` maps the labels ``full`` and ``last`` to recording steps."""
+    """A regime's runs paired by seed (``runs[seed][arm]``); ``steps`` maps the labels ``full`` and ``last`` to
+    recording steps; ``weighted`` lists the seeds whose runs all recorded weights at both steps."""
 
     runs: dict[int, dict[str, Run]]
     steps: dict[str, int]
+    regime: str = "R3"
+    arms: tuple[str, ...] = (BASELINE, TREATMENT)
+    weighted: tuple[int, ...] = field(default=())
 
 
-def load_pairs(runs_dir: Path) -> Pairs:
-    """The R3 runs of ``runs_dir``, one uniform and one tar run per seed.
+def load_pairs(runs_dir: Path, label: str = "R3") -> Pairs:
+    """The runs of regime ``label`` in ``runs_dir``, one run per arm and seed.
 
     Raises:
-        SystemExit: no R3 runs, a seed without its two runs (or with more), an unfinished run, or a run
-            without weights at both recording steps; the message names what is missing.
+        SystemExit: an unknown regime, no runs of the regime, a seed without its arms (or with one twice), an
+            unfinished run, runs of a seed trained at different commits or machines; R3: a run without weights at
+            both recording steps; a chunked-heads regime: no seed whose runs all recorded them. The message names
+            what is missing.
     """
-    r3 = r3_settings()
-    keys = ("policy.name", "data.tasks", "data.n_demos", "optim.steps")
+    spec = regime(label)
+    settings = spec.settings
     if not runs_dir.is_dir():
         raise SystemExit(f"diagnosis: {runs_dir} is not a folder")
     found = []
     for path in sorted(p for p in runs_dir.iterdir() if (p / "config.yaml").is_file()):
         config = yaml.safe_load((path / "config.yaml").read_text())
-        if all(_get(config, k) == r3[k] for k in keys):
-            found.append(load_run(path))
+        if all(_get(config, k) == settings[k] for k in KEYS):
+            found.append((arm_of(config), load_run(path)))
     if not found:
-        wanted = ", ".join(f"{k} {r3[k]}" for k in keys)
-        raise SystemExit(f"diagnosis: no R3 runs in {runs_dir} (runs whose config has {wanted})")
-    steps = {"full": r3["full_step"], "last": r3["optim.steps"]}
+        wanted = ", ".join(f"{k} {settings[k]}" for k in KEYS)
+        raise SystemExit(f"diagnosis: no {label} runs in {runs_dir} (runs whose config has {wanted})")
+    steps = {"full": settings["full_step"], "last": settings["optim.steps"]}
     pairs: dict[int, dict[str, Run]] = {}
-    for run in found:
+    for arm, run in found:
         slot = pairs.setdefault(run.seed, {})
-        if run.objective not in (BASELINE, TREATMENT) or run.objective in slot:
-            raise SystemExit(f"diagnosis: unexpected R3 run {run.name} (seed {run.seed}, {run.objective})")
-        slot[run.objective] = run
+        if arm not in spec.arms or arm in slot:
+            raise SystemExit(f"diagnosis: unexpected {label} run {run.name} (seed {run.seed}, {arm})")
+        slot[arm] = run
+    weighted = []
     for seed, slot in sorted(pairs.items()):
-        for objective in (BASELINE, TREATMENT):
-            if objective not in slot:
+        for arm in spec.arms:
+            if arm not in slot:
                 have = ", ".join(r.name for r in slot.values())
-                raise SystemExit(f"diagnosis: R3's pair of seed {seed} is incomplete: no {objective} run ({have})")
-        _check_runs(slot, steps)
+                raise SystemExit(f"diagnosis: {label}'s pair of seed {seed} is incomplete: no {arm} run ({have})")
+        _check_runs(slot, steps, spec.weights_every_seed)
         check_pairs(list(slot.values()))
-    return Pairs(dict(sorted(pairs.items())), steps)
+        if all(not _lacking(run, steps) for run in slot.values()):
+            weighted.append(seed)
+    if not weighted:
+        raise SystemExit(
+            f"diagnosis: no {label} seed has weights recorded by every arm at training steps "
+            f"{sorted(steps.values())} ({len(pairs)} seeds in {runs_dir})"
+        )
+    return Pairs(dict(sorted(pairs.items())), steps, label, spec.arms, tuple(weighted))
 
 
-def _check_runs(slot: dict[str, Run], steps: dict[str, int]) -> None:
+def _lacking(run: Run, steps: dict[str, int]) -> list[int]:
+    recorded = set() if run.weights is None else set(run.weights["step"].astype(int))
+    return sorted(set(steps.values()) - recorded)
+
+
+def _check_runs(slot: dict[str, Run], steps: dict[str, int], weights: bool) -> None:
     for run in slot.values():
         if not run.finished:
             raise SystemExit(f"diagnosis: {run.name} has not finished ({'; '.join(run.notes)})")
-        recorded = set() if run.weights is None else set(run.weights["step"].astype(int))
-        lacking = sorted(set(steps.values()) - recorded)
-        if lacking:
+        lacking = _lacking(run, steps)
+        if weights and lacking:
             raise SystemExit(f"diagnosis: {run.name} has no recorded weights at training step(s) {lacking}")
     tasks = {run.eval_settings["tasks"] for run in slot.values()}
     if len(tasks) > 1:

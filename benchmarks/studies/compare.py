@@ -1,6 +1,6 @@
 """The paired comparison of arms with a baseline, and the fit and weight statistics of runs.
 
-Runs pair by seed; a pair trained at different commits or on different machines is refused
+Runs pair by seed; a pair trained at different commits, machines or devices is refused
 (:func:`check_pairs`). :func:`paired` gives one arm's paired statistics at a metric and level (the mean paired
 difference, its 95% CI, the paired t-test's p and the minimum detectable effect), :func:`holm_into` the Holm
 correction over a family of them.
@@ -30,16 +30,19 @@ FINAL_SHARE = 0.05
 
 
 def check_pairs(runs: Sequence) -> None:
-    """Refuse a pair (same setting and seed) whose runs were trained at different commits or machines."""
+    """Refuse a pair (same setting and seed) whose runs were trained at different commits, on different machines or
+    on different devices (``summary.json``'s ``machine.device``: a lent GPU machine may share a CPU machine's
+    hostname)."""
     by_seed: dict[int, list] = {}
     for run in runs:
         by_seed.setdefault(run.seed, []).append(run)
     for seed, pair in sorted(by_seed.items()):
         commits = {r.summary.get("git_commit") for r in pair}
         hosts = {(r.summary.get("machine") or {}).get("hostname") for r in pair}
-        if len(commits) > 1 or len(hosts) > 1:
+        devices = {(r.summary.get("machine") or {}).get("device") for r in pair}
+        if len(commits) > 1 or len(hosts) > 1 or len(devices) > 1:
             names = ", ".join(r.name for r in pair)
-            what = "commits" if len(commits) > 1 else "machines"
+            what = "commits" if len(commits) > 1 else "machines" if len(hosts) > 1 else "devices"
             raise SystemExit(f"studies: the pair of seed {seed} ({names}) was trained at different {what}; re-run one")
 
 

@@ -413,7 +413,7 @@ def planned(ctx: Context) -> Planned:
         check_plan_started(ctx.out, label, specs, record=False)
         chunked[label] = (head, specs)
     paired = {label: specs for label, specs in plan(ctx).items() if label not in heads}
-    return Planned(paired, chunked, ctx.out / SCREENING_FILE, screening(ctx.out))
+    return Planned(paired, chunked, ctx.out / SCREENING_FILE, screening(ctx.out), ctx.out)
 
 
 def table(ctx: Context) -> None:

@@ -1,5 +1,8 @@
 """The regime study's tables: the decision table (one row per regime and, for the chunked heads, per TAR arm),
-the per-group rows, the chunked heads' fit and weights, and Fig. 3 per regime, from the finished runs.
+the per-group rows, the chunked heads' fit and weights, Fig. 3 per regime, and the chunked heads' paired differences
+at a glance (``fig_paired.png``: each arm minus uniform per seed, with R6's controls from its table's
+``r6/paired.csv``),
+from the finished runs.
 
 Pairs (a chunked-heads seed's three runs) trained at different commits or on different machines are refused; a
 chunked-heads regime is tabled over the seeds every arm has finished, and with ``complete`` a missing run of its
@@ -10,7 +13,7 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,9 +24,23 @@ from benchmarks.studies.core import Spec, seed_major
 from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
 from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
 
-__all__ = ["PRIMARY", "Planned", "decision_markdown", "regime_rows", "write_tables"]
+__all__ = [
+    "PAIRED_FIGURE",
+    "PAIRED_SOURCES",
+    "PRIMARY",
+    "Planned",
+    "chunked_paired_rows",
+    "decision_markdown",
+    "regime_rows",
+    "write_tables",
+]
 
 PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
+#: The paired differences at a glance (:func:`write_paired_figure`).
+PAIRED_FIGURE = "fig_paired.png"
+#: R6 (``why_act``, results/regimes/PLAN.md "Why TAR helps act"): its folder under the study's, and the file of
+#: per-seed differences its table writes there (``label``, ``group``, ``seed``, ``delta``).
+R6_FOLDER, PAIRED_CSV = "r6", "paired.csv"
 
 
 @dataclass(frozen=True)
@@ -36,12 +53,20 @@ class Planned:
             runs started.
         screening: R2's screening record (``screening.json``).
         screened: the task list it holds (``None`` before the screening).
+        out: the study's folder (``<out>``), under which the paired figure's other sources write their rows
+            (:data:`PAIRED_SOURCES`).
     """
 
     paired: dict[str, list[Spec]]
     chunked: dict[str, tuple[str, dict[str, list[Spec]]]]
     screening: Path
     screened: list[str] | None
+    out: Path
+
+    @property
+    def heads(self) -> dict[str, str]:
+        """The chunked-heads regimes' heads by regime (``R4``: ``act``), in the plan's order."""
+        return {label: head for label, (head, _) in self.chunked.items()}
 
 
 def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
@@ -187,17 +212,18 @@ def by_device_markdown(rows: Sequence[dict]) -> str:
 
 def chunked_tables(
     chunked: dict[str, tuple[str, dict[str, list[Spec]]]], complete: bool
-) -> tuple[list, list, list, list, dict, list]:
+) -> tuple[list, list, list, list, dict, list, dict]:
     """Decision rows (one per regime and TAR arm, Holm over all of them), per-group rows, fit rows, the
-    figure's compare rows, the missing runs and the per-device rows of the chunked-heads regimes (``chunked``:
-    :attr:`Planned.chunked`)."""
+    figure's compare rows, the missing runs, the per-device rows and the runs per arm (by regime) of the
+    chunked-heads regimes (``chunked``: :attr:`Planned.chunked`)."""
     from tar_rl.report import compare
 
-    rows, groups, fits, figure, missing, devices = [], [], [], [], {}, []
+    rows, groups, fits, figure, missing, devices, by_regime = [], [], [], [], {}, [], {}
     for label, (head, specs) in chunked.items():
         loaded, missing[label] = chunked_loaded(label, specs, complete)
         if not loaded[BASELINE]:
             continue
+        by_regime[label] = loaded
         devices += by_device(label, loaded)
         for arm in CHUNKED_ARMS:
             fits.append({"regime": label, "head": head, "arm": arm, **fit_summary(loaded[arm])})
@@ -208,7 +234,7 @@ def chunked_tables(
             rows.append(row)
             groups.append(group)
     holm_into(rows, "p_success")
-    return rows, groups, fits, figure, missing, devices
+    return rows, groups, fits, figure, missing, devices, by_regime
 
 
 def chunked_markdown(fits: Sequence[dict]) -> str:
@@ -255,15 +281,70 @@ def pair_tables(planned: Planned) -> tuple[list, list, list, dict]:
     return rows, groups, figure, missing
 
 
+def _overall_success(run) -> float:
+    from tar_rl.report import run_percent
+
+    return run_percent(run)[("success", "overall")]
+
+
+def chunked_paired_rows(by_regime: dict[str, dict], heads: dict[str, str]) -> list[dict]:
+    """Each chunked-heads regime's TAR arms minus uniform, per seed: ``label`` (``R4 act: tar``), ``group`` (the
+    regime), ``seed`` and ``delta`` (overall success, percentage points), regimes and arms in the table's order."""
+    rows = []
+    for label, loaded in by_regime.items():
+        uniform = {r.seed: _overall_success(r) for r in loaded[BASELINE]}
+        for arm in CHUNKED_ARMS[1:]:
+            for run in loaded[arm]:
+                delta = _overall_success(run) - uniform[run.seed]
+                rows.append(
+                    {"label": f"{label} {heads[label]}: {arm}", "group": label, "seed": run.seed, "delta": delta}
+                )
+    return rows
+
+
+def _r6_source(planned: Planned, by_regime: dict[str, dict]) -> list[dict]:
+    """R6's per-seed differences, as the ``why_act`` study's table writes them (``r6/paired.csv`` under
+    :attr:`Planned.out`; it pairs R6's runs with R4's), or ``[]`` before it has."""
+    path = planned.out / R6_FOLDER / PAIRED_CSV
+    return pd.read_csv(path).to_dict("records") if path.is_file() else []
+
+
+#: The paired figure's rows beyond R4 and R5, each ``(the planned runs, the chunked regimes' runs per arm by regime)
+#: -> rows`` (``label``, ``group``, ``seed``, ``delta``, as :func:`chunked_paired_rows`'s), drawn below them in this
+#: order: R6's controls where its runs are present. R7 (issue 36) has no runs yet: its source is added here.
+PAIRED_SOURCES: tuple[Callable[[Planned, dict], list[dict]], ...] = (_r6_source,)
+
+
+def write_paired_figure(planned: Planned, by_regime: dict[str, dict], dest: Path) -> Path | None:
+    """``fig_paired.png``: each chunked arm minus uniform per seed, with the mean and its 95% t CI
+    (:func:`tar_rl.report.plot_paired_deltas`), R4 and R5 then :data:`PAIRED_SOURCES`; None without rows."""
+    from tar_rl.report import plot_paired_deltas
+
+    rows = chunked_paired_rows(by_regime, planned.heads)
+    for source in PAIRED_SOURCES:
+        rows += source(planned, by_regime)
+    if not rows:
+        return None
+    regimes = ", ".join(dict.fromkeys(r["group"] for r in rows))
+    return plot_paired_deltas(
+        pd.DataFrame(rows),
+        dest / PAIRED_FIGURE,
+        caption=f"{regimes}: overall success of each arm minus uniform's, paired by seed (the decision table's pairs)",
+        xlabel="Δ success, arm - uniform (percentage points)",
+        title="Each arm minus uniform: seeds (dots), mean and 95% t CI (bar)",
+    )
+
+
 def write_tables(planned: Planned, prov: dict, dest: Path, complete: bool = False) -> str:
-    """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head from the
-    finished runs of ``planned``, written into ``dest``; returns the markdown.
+    """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head, and the chunked
+    heads' paired differences (:func:`write_paired_figure`) from the finished runs of ``planned``, written into
+    ``dest``; returns the markdown.
 
     ``complete``: refuse a chunked-heads regime with a run of its plan missing (the final table)."""
     from tar_rl.report import plot_success_vs_neps
 
     rows, groups, figure, missing = pair_tables(planned)
-    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices = chunked_tables(planned.chunked, complete)
+    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices, c_loaded = chunked_tables(planned.chunked, complete)
     rows, groups = rows + c_rows, groups + c_groups
     missing.update(c_missing)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
@@ -279,4 +360,5 @@ def write_tables(planned: Planned, prov: dict, dest: Path, complete: bool = Fals
         fig_table = pd.concat(c_figure, ignore_index=True)
         caption = "chunked heads (R4 act, R5 flow): uniform -> tar, tar_gentle"
         plot_success_vs_neps(fig_table, dest / "fig3_chunked.png", caption=caption)
+    write_paired_figure(planned, c_loaded, dest)
     return md

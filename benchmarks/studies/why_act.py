@@ -15,23 +15,44 @@ STAGE``; runs land in ``<out>/runs``, ``<out>`` being ``results/regimes/r6`` by 
 
 Each stage records its plan's digest when its first run starts (``<out>/started.json``). ``--tree DIR`` trains the
 runs with another checkout's code (the study commit's worktree); this study's runs are trained at R4's commit.
-``table`` writes the comparisons (:mod:`.why_act_table`).
+``table`` writes each pre-registered comparison over its paired seeds (a pair trained at different commits, on
+different machines or devices is refused, naming the runs), Holm over the primary ones, per-group rows, the arms'
+fit and weights and the tuning grid; with ``--complete`` a stage with a run of its plan missing is refused.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import pandas as pd
+
 from benchmarks.studies.cli import Context, Study
+from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_summary, holm_into
 from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, plan_digest, seed_major
 from benchmarks.studies.records import check_started, read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.sweep import execute
+from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
 
-__all__ = ["BASE_ARMS", "CONTROLS", "PERTURB", "SIZES", "STUDY", "WhySizes", "ladder_neighbour", "select_rate"]
+__all__ = [
+    "BASE_ARMS",
+    "COMPARISONS",
+    "CONTROLS",
+    "PERTURB",
+    "SIZES",
+    "STUDY",
+    "Comparison",
+    "WhySizes",
+    "contrast",
+    "ladder_neighbour",
+    "select_rate",
+    "write_tables",
+]
 
 BASE_ARMS = ("uniform", "tar")  # the arms R4 trained: reused where R4's runs pair with R6's
 CONTROLS = ("shuffle", "random", "invert")  # R6a
@@ -207,7 +228,7 @@ def stage_specs(ctx: Context, stage: str) -> dict[str, list[Spec]] | None:
     return tuned_specs(ctx, record["best"])
 
 
-def run_tune(ctx: Context, dry: bool) -> list[Spec]:
+def run_tune(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
     """Train the tuning grid, extend it while its best rate is at an edge, and record the outcome."""
     from tar_rl.io import write_json_atomic
 
@@ -217,7 +238,7 @@ def run_tune(ctx: Context, dry: bool) -> list[Spec]:
     while True:
         specs = tune_specs(ctx, rates)
         rate_by_rate = [s for group in specs.values() for s in group]
-        failed = execute(ctx.scale, rate_by_rate, ctx.jobs, dry, ctx.logs, tree=ctx.args.tree)
+        failed = execute(ctx.scale, rate_by_rate, ctx.jobs, dry, ctx.logs, tree=tree)
         success = grid_success(specs)
         if failed or success is None:
             return failed
@@ -242,6 +263,233 @@ def run_tune(ctx: Context, dry: bool) -> list[Spec]:
     return []
 
 
+# -- The tables --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """``treatment - baseline`` in one stage; ``primary`` comparisons form R6's Holm family."""
+
+    label: str
+    stage: str
+    treatment: str
+    baseline: str
+    primary: bool
+
+
+COMPARISONS = (
+    Comparison("R6 tar - shuffle", "placement", "tar", "shuffle", True),
+    Comparison("R6 tar - random", "placement", "tar", "random", True),
+    Comparison("R6 tar - invert", "placement", "tar", "invert", True),
+    Comparison("R6 shuffle - uniform", "placement", "shuffle", "uniform", True),
+    Comparison("R6 random - uniform", "placement", "random", "uniform", True),
+    Comparison("R6 invert - uniform", "placement", "invert", "uniform", True),
+    Comparison("R6 perturb_low - perturb_high", "perturb", "perturb_low", "perturb_high", True),
+    Comparison("R6c tar - uniform", "tuned", "tar", "uniform", True),
+    Comparison("R6 tar - uniform", "placement", "tar", "uniform", False),
+    Comparison("R6 perturb_high - uniform", "perturb", "perturb_high", "uniform", False),
+    Comparison("R6 perturb_low - uniform", "perturb", "perturb_low", "uniform", False),
+)
+
+
+def contrast(label: str, treatment: Sequence, baseline: Sequence) -> tuple[dict, pd.DataFrame]:
+    """One comparison's row (success, Fast20 and NEPS: means, the mean paired difference, its 95% CI, the paired
+    t-test's p, the MDE at 80% power, pairs where the treatment is higher) and its per-group rows."""
+    from tar_rl.report import min_detectable_effect, paired_table, run_percent
+
+    t_name, b_name = treatment[0].objective, baseline[0].objective
+    paired = paired_table([*treatment, *baseline], baseline=b_name, objectives=[t_name], file=io.StringIO())
+    row: dict = {"comparison": label}
+    for metric in ("success", "fast20", "neps"):
+        rec = paired[(paired["metric"] == metric) & (paired["level"] == "overall")].iloc[0]
+        row[f"{metric}_treatment"], row[f"{metric}_baseline"] = rec["objective_mean"], rec["baseline_mean"]
+        row[f"d_{metric}"] = rec["delta_mean"]
+        row[f"d_{metric}_ci_low"], row[f"d_{metric}_ci_high"] = rec["ci_low"], rec["ci_high"]
+        row[f"p_{metric}"] = rec["p_value"]
+        if metric == "success":
+            row["pairs"] = int(rec["n_pairs"])
+            row["mde_success"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
+    by_seed = {r.seed: run_percent(r)[("success", "overall")] for r in baseline}
+    row["higher"] = sum(run_percent(r)[("success", "overall")] > by_seed[r.seed] for r in treatment)
+    groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(comparison=label)
+    return row, groups
+
+
+def stage_runs(ctx: Context, stage: str, complete: bool) -> tuple[dict[str, dict[int, object]], list[str]]:
+    """A stage's finished runs per arm and seed (loaded) and the names of its planned runs not finished.
+
+    Raises:
+        SystemExit: the plan changed after its runs started; with ``complete``, a run of the plan is missing.
+    """
+    from tar_rl.report import load_run
+
+    specs = stage_specs(ctx, stage)
+    if specs is None:
+        return {}, []
+    check_plan(ctx, stage, specs, record=False)
+    missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
+    if complete and missing:
+        raise SystemExit(f"why_act: {stage} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
+    return {
+        arm: {s.config["seed"]: load_run(s.run_dir) for s in group if s.finished} for arm, group in specs.items()
+    }, (missing)
+
+
+def comparison_rows(ctx: Context, complete: bool) -> tuple[list[dict], list[pd.DataFrame], list[dict], dict, list]:
+    """Every comparison with paired seeds (Holm over the primary ones present), their per-group rows, the fit
+    and weights of each stage's arms over its paired seeds, the missing runs per stage and the placement arms'
+    per-seed differences to uniform (:func:`paired_rows`)."""
+    loaded, missing = {}, {}
+    for stage in ("placement", "tuned", "perturb"):
+        loaded[stage], missing[stage] = stage_runs(ctx, stage, complete)
+    rows, groups, fits = [], [], []
+    for c in COMPARISONS:
+        arms = loaded[c.stage]
+        if not arms:
+            continue
+        seeds = sorted(set(arms[c.treatment]) & set(arms[c.baseline]))
+        if not seeds:
+            continue
+        treatment, baseline = [arms[c.treatment][s] for s in seeds], [arms[c.baseline][s] for s in seeds]
+        check_pairs([*treatment, *baseline])
+        row, group = contrast(c.label, treatment, baseline)
+        rows.append({**row, "primary": c.primary})
+        groups.append(group)
+    for stage, arms in loaded.items():
+        common = sorted(set.intersection(*(set(a) for a in arms.values()))) if arms else []
+        for arm, by_seed in arms.items():
+            if common:
+                fits.append(
+                    {"stage": stage, "arm": arm, "seeds": len(common)} | fit_summary([by_seed[s] for s in common])
+                )
+    holm_into([r for r in rows if r["primary"]], "p_success")
+    return rows, groups, fits, missing, paired_rows(loaded["placement"])
+
+
+def paired_rows(placement: dict[str, dict[int, object]]) -> list[dict]:
+    """Each placement arm (``tar`` and the controls) minus ``uniform`` per seed, in points of overall success:
+    ``label``, ``group``, ``seed``, ``delta``; the paired-difference figure of the regime study reads them
+    (``paired.csv``)."""
+    from tar_rl.report import run_percent
+
+    def success(run) -> float:
+        return run_percent(run)[("success", "overall")]
+
+    uniform = placement.get("uniform", {})
+    return [
+        {"label": f"R6 act: {arm}", "group": "R6", "seed": seed, "delta": success(run) - success(uniform[seed])}
+        for arm in ("tar", *CONTROLS)
+        for seed, run in sorted(placement.get(arm, {}).items())
+        if seed in uniform and any(seed in placement.get(c, {}) for c in CONTROLS)
+    ]
+
+
+def tuning_rows(ctx: Context) -> list[dict]:
+    """The tuning grid's finished runs: overall success per rate and seed on the tuning evaluation seed."""
+    from tar_rl.report import load_run, run_percent
+
+    record = tuning(ctx)
+    rates = record["rates"] if record else ctx.sizes.tune_rates
+    rows = []
+    for group in tune_specs(ctx, rates).values():
+        for spec in group:
+            if spec.finished:
+                run = load_run(spec.run_dir)
+                success = run_percent(run)[("success", "overall")]
+                rows.append({"lr": float(spec.config["optim"]["lr"]), "seed": run.seed, "success": success})
+    return rows
+
+
+def _comparison_lines(rows: Sequence[dict]) -> list[str]:
+    lines = [
+        "| comparison | pairs | success % T / B | Δ success [95% CI] | p | Holm p | MDE (80%) | T higher | Δ Fast20 "
+        "| Δ NEPS |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ci = f"[{fmt_num(r['d_success_ci_low'], 2, True)}, {fmt_num(r['d_success_ci_high'], 2, True)}]"
+        lines.append(
+            f"| {r['comparison']} | {r['pairs']} "
+            f"| {fmt_num(r['success_treatment'])} / {fmt_num(r['success_baseline'])} "
+            f"| {fmt_num(r['d_success'], 2, True)} {ci} | {fmt_p(r['p_success'])} | {fmt_p(r.get('holm_p'))} "
+            f"| {fmt_num(r['mde_success'], 2)} | {r['higher']} of {r['pairs']} | {fmt_num(r['d_fast20'], 2, True)} "
+            f"| {fmt_num(r['d_neps'], 2, True)} |"
+        )
+    return lines
+
+
+def decision_markdown(rows, groups: pd.DataFrame, fits, tune: Sequence[dict], record, missing) -> str:
+    """R6's comparisons, per-group rows, fit and weights, tuning grid and missing runs, as markdown."""
+    out = ["# Why does TAR help act? R6's comparisons", "", *_comparison_lines(rows), ""]
+    out += [
+        "Success, Fast20 and NEPS in 100 x units; Δ = T - B over the seeds both arms have (lower Fast20/NEPS is "
+        "better). Holm over R6's primary comparisons present (every row with a Holm p; `R6 tar - uniform` repeats R4 "
+        "on R6's pairs, and the perturbation arms against uniform are secondary). MDE: the smallest true Δ success a "
+        "paired t-test detects with 80% power at the observed spread. T higher: pairs where T's success is higher.",
+        "",
+        "## Success per difficulty group",
+        "",
+        "| comparison | group | pairs | T % | B % | Δ [95% CI] | p |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for g in groups.to_dict("records"):
+        ci = f"[{fmt_num(g['ci_low'], 2, True)}, {fmt_num(g['ci_high'], 2, True)}]"
+        out.append(
+            f"| {g['comparison']} | {g['level']} | {g['n_pairs']} | {fmt_num(g['objective_mean'])} "
+            f"| {fmt_num(g['baseline_mean'])} | {fmt_num(g['delta_mean'], 2, True)} {ci} | {fmt_p(g['p_value'])} |"
+        )
+    if fits:
+        out += ["", "## Arms: fit and weights", ""]
+        out += fit_markdown(pd.DataFrame(fits), ["stage", "arm", "seeds"])
+        out += [
+            "",
+            "Means over the seeds every arm of the stage has; largest weight and ESS (fraction of valid steps) over "
+            f"the last {FINAL_SHARE:.0%} of training steps (a uniform run's weights are all 1).",
+        ]
+    if tune:
+        out += ["", "## Tuning uniform's learning rate (evaluation seed 2000)", ""]
+        frame = pd.DataFrame(tune)
+        out += ["| learning rate | seeds | success % per seed | mean |", "|---|---|---|---|"]
+        for lr, g in frame.groupby("lr", sort=True):
+            per_seed = ", ".join(f"{s}: {fmt_num(v)}" for s, v in zip(g["seed"], g["success"]))
+            out.append(f"| {lr:g} | {len(g)} | {per_seed} | {fmt_num(g['success'].mean())} |")
+        if record:
+            out += [
+                "",
+                f"Best rate {record['best']:g}, {record['gain_over_reference']:+.2f} points over R4's; "
+                f"{record['rule']}: "
+                + ("the tuned pair is trained." if record["train_pair"] else "no tuned pair is trained."),
+            ]
+    pending = {k: v for k, v in missing.items() if v}
+    if pending:
+        out += ["", "## Not finished yet", ""]
+        out += [
+            f"- {k}: {len(v)} run(s) ({', '.join(v[:4])}{', ...' if len(v) > 4 else ''})" for k, v in pending.items()
+        ]
+    return "\n".join(out) + "\n"
+
+
+def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -> str:
+    """R6's tables (markdown + CSV) from the finished runs of ``ctx.out`` (and R4's beside it), written into
+    ``dest``; returns the markdown. ``complete``: refuse a planned stage with a run missing (the final table)."""
+    rows, groups, fits, missing, paired = comparison_rows(ctx, complete)
+    tune = tuning_rows(ctx)
+    group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
+    md = decision_markdown(rows, group_df, fits, tune, tuning(ctx), missing)
+    tables = {"decision.csv": pd.DataFrame(rows)}
+    if len(group_df):
+        tables["groups.csv"] = group_df
+    if tune:
+        tables["tuning.csv"] = pd.DataFrame(tune)
+    if paired:
+        tables["paired.csv"] = pd.DataFrame(paired)
+    write_outputs(dest, {"decision.md": md}, tables, prov)
+    return md
+
+
+# -- The study -------------------------------------------------------------------------------------------
+
+
 def plan(ctx: Context) -> dict[str, list[Spec]]:
     """Every stage's planned runs that can be planned now, by stage."""
     out = {}
@@ -254,9 +502,9 @@ def plan(ctx: Context) -> dict[str, list[Spec]]:
 
 def run(ctx: Context, stage: str) -> list[Spec]:
     """Train one stage (module docstring); returns the runs that failed."""
-    dry = ctx.args.dry_run
+    dry, tree = ctx.args.dry_run, check_tree(ctx.args.tree)
     if stage == "tune":
-        return run_tune(ctx, dry)
+        return run_tune(ctx, dry, tree)
     specs = stage_specs(ctx, stage)
     if specs is None:
         raise SystemExit(
@@ -264,14 +512,13 @@ def run(ctx: Context, stage: str) -> list[Spec]:
             f"({ctx.out / TUNING_FILE}: {tuning(ctx)}); run `tune` first"
         )
     check_plan(ctx, stage, specs, record=not dry)
-    return execute(ctx.scale, seed_major(specs), ctx.jobs, dry, ctx.logs, tree=ctx.args.tree)
+    return execute(ctx.scale, seed_major(specs), ctx.jobs, dry, ctx.logs, tree=tree)
 
 
 def table(ctx: Context) -> None:
-    """R6's comparisons (:func:`.why_act_table.write_tables`)."""
+    """R6's comparisons (:func:`write_tables`)."""
     from benchmarks.studies.cli import tables_dir
     from benchmarks.studies.records import provenance
-    from benchmarks.studies.why_act_table import write_tables
 
     prov = provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
     print(write_tables(ctx, prov, tables_dir(ctx), complete=ctx.args.complete))
@@ -281,17 +528,19 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--complete", action="store_true", help="table: refuse a stage with a run of its plan missing")
     p.add_argument(
         "--tree",
-        type=_tree,
+        type=Path,
         default=None,
         help="run: train with this checkout's code (a git worktree at the study's commit, with its own .venv)",
     )
 
 
-def _tree(text: str) -> Path:
-    tree = Path(text).resolve()
+def check_tree(tree: Path | None) -> Path | None:
+    """The checkout ``--tree`` names, resolved; refused unless it holds tar-rl and its own ``.venv``."""
+    if tree is None:
+        return None
     if not (tree / ".venv" / "bin" / "python").is_file() or not (tree / "tar_rl").is_dir():
-        raise argparse.ArgumentTypeError(f"{text} is not a checkout of tar-rl with its own .venv (.venv/bin/python)")
-    return tree
+        raise SystemExit(f"why_act: --tree {tree} is not a checkout of tar-rl with its own .venv (.venv/bin/python)")
+    return tree.resolve()
 
 
 def _with_options(sizes: WhySizes, args: argparse.Namespace) -> WhySizes:

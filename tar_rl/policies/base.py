@@ -104,12 +104,18 @@ class Policy:
 
 @dataclass(frozen=True)
 class PolicySpec:
-    """A registered head: its config dataclass and its builder."""
+    """A registered head: its config dataclass and its builder.
+
+    Attributes:
+        signals: the ranking signals its loss offers besides the loss itself (``objective.signal``; the ``flow``
+            head's ``action_error`` and ``time_normalized``), none for most heads.
+    """
 
     name: str
     config: type
     build: Callable[[object, DataInfo], Policy]
     description: str = ""
+    signals: tuple[str, ...] = ()
 
 
 POLICIES: Registry[PolicySpec] = Registry("policy")

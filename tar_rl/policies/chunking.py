@@ -15,7 +15,10 @@ ACT's KL term ``loss_kl`` and its diagnostic ``kl``). Its supervision target is 
 ``action_chunk`` (:attr:`ChunkLoss.target_key`): the objective's supervision transforms (the
 ``perturb_*`` controls of ``tar_rl.TARLoss``) corrupt that entry. What a padded chunk entry (past
 the episode's end, ``action_chunk_valid`` False) contributes is the model's choice; ``TARLoss``
-averages each step's loss over the valid entries only (``Policy.event_valid``).
+averages each step's loss over the valid entries only (``Policy.event_valid``). A model may offer
+ranking signals besides its loss (``signals``, e.g. the ``flow`` head's implied action error):
+``ChunkLoss(..., signal=name)`` returns the chosen one beside the loss, one value per step, for
+``TARLoss`` to rank the steps by.
 
 **Inference** (:class:`ChunkedActor`): the evaluator collectors call the actor once per environment
 step on an ``[N]`` batch of slots, with ``is_init`` (``[N, 1]`` bool, TorchRL's ``InitTracker``)
@@ -42,6 +45,7 @@ dropped when the batch size changes.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -52,12 +56,17 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.objectives import LossModule
 
+from tar_rl.objectives.elementwise import element_mean
+from tar_rl.objectives.inner import SIGNAL
+
 from .base import DataInfo, Policy
 from .common import TASK_CONDITIONING
 
-__all__ = ["EXECUTIONS", "ChunkLoss", "ChunkedActor", "ChunkedHeadConfig", "check_execution", "chunked_policy"]
+__all__ = ["EXECUTIONS", "TIME", "ChunkLoss", "ChunkedActor", "ChunkedHeadConfig", "check_execution", "chunked_policy"]
 
 EXECUTIONS = ("ensemble", "open_loop")
+#: The extra a model offering ranking signals returns beside its loss: each step's training time ``[*B]``.
+TIME = "time"
 
 
 # -- Settings ------------------------------------------------------------------------------------
@@ -127,7 +136,13 @@ class ChunkLoss(LossModule):
     * ``reads_pixels``: with image observations, ``pixels`` is read and passed as well;
     * ``chunk_loss(**inputs) -> (loss, extras)``: ``loss`` ``[*B, H, A]`` and ``extras``, a dict of
       scalars named in ``loss_extras``: ``loss_*`` ones are losses ``TARLoss`` adds unweighted,
-      the others detached diagnostics.
+      the others detached diagnostics;
+    * optionally ``signals``, the names of the ranking signals it offers besides its loss. Such a model
+      also returns, among its ``extras``, the training time each step's loss was drawn at, ``[*B]``
+      (:data:`TIME`, not part of the output), and provides ``signal_state(name)`` (a module holding
+      the signal's state, or ``None``) and ``step_signal(name, step_loss, time, valid, state, update)
+      -> [*B]`` (``step_loss``: each step's loss, the mean over its valid chunk entries as ``TARLoss``
+      takes it; ``valid``: ``True`` on real steps; ``update``: a training step, which moves the state).
 
     ``action_chunk_valid``, when present, must be ``torch.bool`` of the chunk's shape without the
     action dim.
@@ -136,6 +151,10 @@ class ChunkLoss(LossModule):
         model: the head's network.
         loss_name: the per-step output entry, ``loss_<something>`` (``Policy.loss_key`` names it
             when the model has ``loss_*`` extras).
+        signal: ``"loss"`` (default: no signal in the output) or one of the model's ``signals``, returned
+            detached as the output entry ``"signal"`` ``[*B]`` (``TARLoss``'s ``signal`` key). Its state, if
+            any, is the submodule ``signal_state`` (in ``state_dict()``: a resumed run continues it) and moves
+            on a training step (training mode, gradients enabled).
 
     Input: a TensorDict of batch shape ``[*B]`` (``[B, L]`` segments in training) with the keys the
     model reads. It is not modified.
@@ -175,12 +194,30 @@ class ChunkLoss(LossModule):
     reduction = "none"
     OPTIONAL = ("action_chunk_valid", "valid")
 
-    def __init__(self, model: nn.Module, loss_name: str = "loss_chunk"):
+    def __init__(self, model: nn.Module, loss_name: str = "loss_chunk", signal: str = "loss"):
         if not loss_name.startswith("loss_"):
             raise ValueError(f"the loss entry must start with 'loss_', got {loss_name!r}")
+        offered = ("loss", *getattr(model, "signals", ()))
+        if signal not in offered:
+            raise ValueError(
+                f"the ranking signal {signal!r} is not one the {type(model).__name__} offers: {list(offered)}"
+            )
         super().__init__()
         self.model = model
         self.loss_name = loss_name
+        self.signal = signal
+        self.signal_state = model.signal_state(signal) if signal != "loss" else None
+
+    @property
+    def signals(self) -> tuple[str, ...]:
+        """The ranking signals it can return: ``"loss"`` (none beside the loss) and the model's."""
+        return ("loss", *getattr(self.model, "signals", ()))
+
+    def with_signal(self, signal: str) -> ChunkLoss:
+        """A loss on the same model, with the same keys, that returns the ranking signal ``signal``."""
+        loss = ChunkLoss(self.model, self.loss_name, signal)
+        loss.set_keys(**dataclasses.asdict(self.tensor_keys))
+        return loss
 
     @property
     def functional(self) -> bool:
@@ -202,7 +239,7 @@ class ChunkLoss(LossModule):
 
     @property
     def out_keys(self) -> list[str]:
-        return [self.loss_name, *self.model.loss_extras]
+        return [self.loss_name, *self.model.loss_extras, *([SIGNAL] if self.signal != "loss" else [])]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         """The model's unreduced chunk loss and its scalar extras (class docstring)."""
@@ -220,7 +257,24 @@ class ChunkLoss(LossModule):
         if self.model.reads_pixels:
             inputs["pixels"] = tensordict.get(k.pixels)
         loss, extras = self.model.chunk_loss(**inputs)
+        time = extras.get(TIME)
+        extras = {name: value for name, value in extras.items() if name != TIME}
+        if self.signal != "loss":
+            extras[SIGNAL] = self._signal(loss.detach(), time, tensordict, chunk_valid)
         return TensorDict({self.loss_name: loss, **extras}, batch_size=[])
+
+    def _signal(self, loss: torch.Tensor, time, tensordict: TensorDictBase, chunk_valid) -> torch.Tensor:
+        """The chosen ranking signal ``[*B]``, detached, from each step's loss as ``TARLoss`` takes it (the mean
+        over the step's valid chunk entries) and the model's training times; its state moves on a training step."""
+        lead = loss.ndim - 2
+        if chunk_valid is None:
+            steps = loss.mean((-2, -1))
+        else:
+            steps = element_mean(loss, chunk_valid[..., None].expand_as(loss), lead)
+        valid = tensordict.get(self.tensor_keys.valid, None)
+        valid = torch.ones_like(steps, dtype=torch.bool) if valid is None else valid.reshape(steps.shape)
+        update = self.training and torch.is_grad_enabled()
+        return self.model.step_signal(self.signal, steps, time, valid, self.signal_state, update).detach()
 
 
 # -- Inference -----------------------------------------------------------------------------------

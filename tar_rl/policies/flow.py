@@ -14,7 +14,22 @@ action expert, Black et al. 2024) predicts a velocity field:
   density proportional to ``tau ** 0.5``, more weight on noisy times, drawn as ``U ** (2 / 3)``
   by inversion of its CDF ``tau ** 1.5``, then mapped to ``0.001 + 0.999 * tau`` as openpi does)
   or ``uniform`` (``U(0.001, 1)``). Per-step loss: the velocity regression squared error per chunk
-  element ``[B, L, H, A]``. ``tau`` and the noise come from torch's global RNG.
+  element ``[B, L, H, A]``. ``tau`` and the noise come from torch's global RNG. ``time_sampling``:
+  ``step`` draws them for every step of a ``[B, L]`` batch apart (pi0's); ``segment`` draws one ``tau``
+  and one noise chunk per segment, shared by its ``L`` steps, with the segments' times stratified
+  (common random numbers: ``u_b = (u_0 + b / B) mod 1`` for segment ``b`` of ``B``, one ``u_0 ~ U(0, 1)``
+  per batch, then the time distribution's inverse CDF), so that within a segment the steps' losses
+  differ by the steps and not by the draw.
+* ranking signals (what ``TARLoss`` may rank the steps by instead of the loss, :data:`FLOW_SIGNALS`):
+  ``action_error``, the error of the chunk the velocity implies, and ``time_normalized``, the loss
+  over a running estimate of the mean loss at its time (:class:`TimeNormalizer`). The implied chunk:
+  from ``x_tau = tau * noise + (1 - tau) * A`` and ``u = noise - A``, ``A = x_tau - tau * u``, so the
+  velocity ``v_hat`` implies ``A_hat = x_tau - tau * v_hat`` and ``A_hat - A = tau * (u - v_hat)``: per
+  chunk element ``(A_hat - A) ** 2 = tau ** 2 * (v_hat - u) ** 2``, the step's action error is
+  ``tau ** 2`` times its velocity loss (``tau ** 2`` in this convention, where ``tau = 1`` is noise; in
+  the convention ``x_t = t * A + (1 - t) * noise`` it would be ``(1 - t) ** 2``). The same action
+  error costs ``1 / tau ** 2`` times more velocity loss at a small ``tau``, which no other step of its
+  segment shares when each step draws its own ``tau``.
 * inference: start from ``x_1 ~ N(0, I)`` (drawn at every call from a generator seeded with
   ``seed`` and shared by the batch's rows, :class:`~tar_rl.policies.octo.SeededSampling`: the chunk is a
   deterministic function of the row's inputs and the seed) and take ``sample_steps`` Euler steps
@@ -26,15 +41,38 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.distributed as torch_dist
 from torch import nn
 
 from .base import DataInfo, Policy, PolicySpec, register_policy
-from .chunking import chunked_policy
-from .octo import OctoConfig, SeededSampling, TransformerBlock, check_chunk_shape, sinusoidal_embedding
+from .chunking import TIME, chunked_policy
+from .octo import OctoConfig, SeededSampling, TransformerBlock, check_chunk_shape, hold_last_valid, sinusoidal_embedding
 
-__all__ = ["TIME_DISTRIBUTIONS", "FlowConfig", "FlowPolicy", "euler_integrate", "sample_flow_time"]
+__all__ = [
+    "FLOW_SIGNALS",
+    "TIME_BINS",
+    "TIME_DECAY",
+    "TIME_DISTRIBUTIONS",
+    "TIME_SAMPLINGS",
+    "FlowConfig",
+    "FlowPolicy",
+    "TimeNormalizer",
+    "euler_integrate",
+    "flow_time",
+    "flow_time_cdf",
+    "sample_flow_time",
+    "stratified_uniform",
+]
 
 TIME_DISTRIBUTIONS = ("beta", "uniform")
+#: ``policy.time_sampling``: one training time and noise per step, or per segment (stratified across segments).
+TIME_SAMPLINGS = ("step", "segment")
+#: The ranking signals the head offers besides its loss (``objective.signal``; module docstring).
+FLOW_SIGNALS = ("action_error", "time_normalized")
+#: :class:`TimeNormalizer`'s bins of equal probability under the time distribution (the first, under Beta(1.5, 1),
+#: holds ``tau`` up to about 0.1), and the decay of its running means (a window of about 100 training steps).
+TIME_BINS = 32
+TIME_DECAY = 0.99
 
 
 @dataclass
@@ -45,6 +83,8 @@ class FlowConfig(OctoConfig):
         sample_steps: Euler steps at inference (pi0: 10).
         seed: seeds the initial noise at inference.
         time_distribution: training times ``tau``: ``beta`` (pi0's Beta(1.5, 1)) or ``uniform``.
+        time_sampling: ``step`` (a time and a noise chunk per step, pi0's) or ``segment`` (one per segment,
+            shared by its steps, the segments' times stratified across the batch; see ``tar_rl.policies.flow``).
         expert_dim: token width of the action expert.
         expert_layers: transformer blocks of the action expert (heads: ``policy.heads``).
     """
@@ -53,18 +93,81 @@ class FlowConfig(OctoConfig):
     sample_steps: int = 10
     seed: int = 0
     time_distribution: str = "beta"
+    time_sampling: str = "step"
     expert_dim: int = 32
     expert_layers: int = 2
 
 
-def sample_flow_time(shape, kind: str, device=None) -> torch.Tensor:
-    """Training times ``tau`` in ``[0.001, 1]`` from torch's global RNG (module docstring)."""
-    u = torch.rand(shape, device=device)
+def flow_time(u: torch.Tensor, kind: str) -> torch.Tensor:
+    """Training times ``tau`` in ``[0.001, 1]`` from uniform ``u`` in ``[0, 1)``: the inverse CDF of the time
+    distribution ``kind`` (module docstring)."""
     if kind == "beta":
         u = u.pow(2.0 / 3.0)  # Beta(1.5, 1): CDF tau ** 1.5, inverted
     elif kind != "uniform":
         raise ValueError(f"policy.time_distribution must be one of {list(TIME_DISTRIBUTIONS)}, got {kind!r}")
     return 0.001 + 0.999 * u
+
+
+def flow_time_cdf(tau: torch.Tensor, kind: str) -> torch.Tensor:
+    """The time distribution's CDF at ``tau``, in ``[0, 1]``: :func:`flow_time` inverted."""
+    u = ((tau - 0.001) / 0.999).clamp(0.0, 1.0)
+    return u.pow(1.5) if kind == "beta" else u
+
+
+def sample_flow_time(shape, kind: str, device=None) -> torch.Tensor:
+    """Training times ``tau`` in ``[0.001, 1]`` from torch's global RNG (module docstring)."""
+    return flow_time(torch.rand(shape, device=device), kind)
+
+
+def stratified_uniform(n: int, device=None) -> torch.Tensor:
+    """``[n]`` uniforms, one in each of the ``n`` strata ``[b / n, (b + 1) / n)``: ``(u_0 + b / n) mod 1`` for
+    ``b = 0 .. n-1`` with one ``u_0 ~ U(0, 1)`` from torch's global RNG."""
+    return (torch.rand((), device=device) + torch.arange(n, device=device) / n) % 1.0
+
+
+class TimeNormalizer(nn.Module):
+    """A running estimate of the mean per-step loss at each training time, for the ``time_normalized`` signal.
+
+    The times are binned into ``bins`` bins of equal probability under the time distribution (a step's bin:
+    ``floor(bins * F(tau))``, ``F`` the CDF). Each bin's estimate is an exponential moving average, bias-corrected
+    as in Adam: on every training step with valid steps in the bin, ``total <- decay * total + (1 - decay) * m`` and
+    ``weight <- decay * weight + (1 - decay)``, ``m`` the mean of the finite losses of the batch's valid steps in
+    the bin (summed over the ranks of a distributed job first); the estimate is ``total / weight``. A call computes
+    that update and divides by it, so a step's estimate always holds its own batch (every bin it meets is seen);
+    only a training step keeps it. Non-finite losses never enter it.
+
+    Buffers ``total`` and ``weight`` (``[bins]``, float64) are in ``state_dict()``: a resumed run continues them
+    exactly.
+    """
+
+    def __init__(self, bins: int = TIME_BINS, decay: float = TIME_DECAY):
+        super().__init__()
+        self.bins, self.decay = int(bins), float(decay)
+        self.register_buffer("total", torch.zeros(self.bins, dtype=torch.float64))
+        self.register_buffer("weight", torch.zeros(self.bins, dtype=torch.float64))
+
+    def forward(self, losses: torch.Tensor, position: torch.Tensor, valid: torch.Tensor, update: bool) -> torch.Tensor:
+        """``losses`` divided by the estimate of their bins: ``position`` is each step's ``F(tau)`` in ``[0, 1]``,
+        ``valid`` ``True`` on real steps, all ``[*B]``; ``update``: keep the update (a training step)."""
+        index = (position.double() * self.bins).floor().long().clamp(0, self.bins - 1).reshape(-1)
+        counted = (valid & torch.isfinite(losses)).reshape(-1)
+        x = torch.where(
+            counted, losses.reshape(-1).double(), torch.zeros((), dtype=torch.float64, device=losses.device)
+        )
+        stats = torch.zeros(2, self.bins, dtype=torch.float64, device=losses.device)
+        stats[0].index_add_(0, index, x)
+        stats[1].index_add_(0, index, counted.double())
+        if update and torch_dist.is_available() and torch_dist.is_initialized():
+            torch_dist.all_reduce(stats)
+        seen = stats[1] > 0
+        mean = stats[0] / stats[1].clamp_min(1)
+        total = torch.where(seen, self.decay * self.total + (1 - self.decay) * mean, self.total)
+        weight = torch.where(seen, self.decay * self.weight + (1 - self.decay), self.weight)
+        if update:
+            self.total.copy_(total)
+            self.weight.copy_(weight)
+        estimate = (total / weight).clamp_min(torch.finfo(torch.float64).tiny)  # a bin of zero losses: 0 / tiny
+        return (losses.double() / estimate[index].reshape(losses.shape)).to(losses.dtype)
 
 
 def euler_integrate(velocity_fn, x: torch.Tensor, steps: int) -> torch.Tensor:
@@ -84,6 +187,7 @@ class FlowPolicy(SeededSampling):
     """Backbone features + action expert -> velocity; flow-matching loss; Euler sampling (module docstring)."""
 
     T_EMBED = 32
+    signals = FLOW_SIGNALS
 
     def __init__(self, cfg: FlowConfig, info: DataInfo):
         if cfg.sample_steps < 1:
@@ -92,6 +196,8 @@ class FlowPolicy(SeededSampling):
             raise ValueError(
                 f"policy.time_distribution must be one of {list(TIME_DISTRIBUTIONS)}, got {cfg.time_distribution!r}"
             )
+        if cfg.time_sampling not in TIME_SAMPLINGS:
+            raise ValueError(f"policy.time_sampling must be one of {list(TIME_SAMPLINGS)}, got {cfg.time_sampling!r}")
         if cfg.expert_dim < 1 or cfg.expert_layers < 1 or cfg.expert_dim % cfg.heads:
             raise ValueError(
                 f"policy.expert_dim must be >= 1 and divisible by policy.heads ({cfg.heads}), and "
@@ -99,6 +205,7 @@ class FlowPolicy(SeededSampling):
             )
         super().__init__(cfg, info)
         self.sample_steps, self.time_distribution = int(cfg.sample_steps), cfg.time_distribution
+        self.time_sampling = cfg.time_sampling
         e = int(cfg.expert_dim)
         self.context = nn.Linear(int(cfg.dim), e)
         self.action_in = nn.Linear(self.action_dim + self.T_EMBED, e)
@@ -124,16 +231,62 @@ class FlowPolicy(SeededSampling):
 
     def step_loss(self, history, history_valid, task_id, chunk, pixels=None) -> torch.Tensor:
         """``[B, L, H, A]``: ``(v_hat(x_tau, tau) - (noise - chunk)) ** 2`` per chunk element."""
+        return self.flow_loss(history, history_valid, task_id, chunk, pixels)[0]
+
+    def flow_loss(self, history, history_valid, task_id, chunk, pixels=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`step_loss` ``[*B, H, A]`` and the time ``tau`` ``[*B]`` each step's loss was drawn at."""
         check_chunk_shape(chunk, self.horizon, self.action_dim)
         lead = chunk.shape[:-2]
         features = self.backbone(history, history_valid, task_id, pixels).reshape(-1, self.backbone.dim)
         actions = chunk.float().reshape(-1, self.horizon, self.action_dim)
-        tau = sample_flow_time(actions.shape[0], self.time_distribution, device=actions.device)
-        noise = torch.randn_like(actions)
+        tau, noise = self.draw(actions, lead)
         t = tau[:, None, None]
         x_tau = t * noise + (1 - t) * actions
         v = self.velocity(x_tau, tau, features).float()
-        return (v - (noise - actions)).square().reshape(*lead, self.horizon, self.action_dim)
+        loss = (v - (noise - actions)).square().reshape(*lead, self.horizon, self.action_dim)
+        return loss, tau.reshape(lead)
+
+    def draw(self, actions: torch.Tensor, lead: torch.Size) -> tuple[torch.Tensor, torch.Tensor]:
+        """The training times ``[N]`` and noise ``[N, H, A]`` of the ``N`` chunks ``actions`` (``lead`` their batch
+        shape): per step, or with ``time_sampling="segment"`` per segment (the last axis of ``lead`` holds a
+        segment's steps; a flat batch is one segment), stratified across segments (module docstring)."""
+        if self.time_sampling == "step":
+            tau = sample_flow_time(actions.shape[0], self.time_distribution, device=actions.device)
+            return tau, torch.randn_like(actions)
+        steps = lead[-1] if len(lead) else 1
+        segments = actions.shape[0] // steps
+        tau = flow_time(stratified_uniform(segments, actions.device), self.time_distribution)
+        noise = torch.randn(segments, 1, *actions.shape[1:], device=actions.device, dtype=actions.dtype)
+        return tau.repeat_interleave(steps), noise.expand(segments, steps, *actions.shape[1:]).reshape(actions.shape)
+
+    def chunk_loss(
+        self,
+        observation_history: torch.Tensor,
+        observation_history_valid: torch.Tensor,
+        task_id: torch.Tensor,
+        action_chunk: torch.Tensor,
+        action_chunk_valid: torch.Tensor | None = None,
+        pixels: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, dict]:
+        """As :meth:`OctoHead.chunk_loss`, with each step's training time among the extras (``TIME``)."""
+        if action_chunk_valid is not None:
+            action_chunk = hold_last_valid(action_chunk, action_chunk_valid)
+        images = {"pixels": pixels} if self.reads_pixels else {}
+        loss, tau = self.flow_loss(observation_history, observation_history_valid, task_id, action_chunk, **images)
+        return loss, {TIME: tau.detach()}
+
+    def signal_state(self, name: str) -> nn.Module | None:
+        """The state of the ranking signal ``name``: a :class:`TimeNormalizer` for ``time_normalized``."""
+        return TimeNormalizer() if name == "time_normalized" else None
+
+    def step_signal(self, name, step_loss, time, valid, state, update) -> torch.Tensor:
+        """The ranking signal ``name`` ``[*B]`` of each step (module docstring): ``action_error``,
+        ``tau ** 2 * step_loss``; ``time_normalized``, ``step_loss`` over ``state``'s estimate at ``tau``."""
+        if name == "action_error":
+            return time.square() * step_loss
+        if name == "time_normalized":
+            return state(step_loss, flow_time_cdf(time, self.time_distribution), valid, update)
+        raise ValueError(f"the flow head offers the ranking signals {list(FLOW_SIGNALS)}, not {name!r}")
 
     def sample(self, noise: torch.Tensor, features: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """The chunk ``[N, H, A]``: ``sample_steps`` Euler steps from ``noise`` at ``tau = 1`` to 0."""
@@ -150,5 +303,6 @@ register_policy(
         FlowConfig,
         _build_flow,
         "flow matching (pi0-style action expert, Beta(1.5, 1) times, Euler sampling) on the Octo-style backbone",
+        signals=FLOW_SIGNALS,
     )
 )

@@ -9,7 +9,8 @@
   matched seeds; :func:`run_percent` is one run's final metrics in percent.
 * :mod:`~tar_rl.report.tables`: the text tables the command prints (:func:`runs_table`, ...).
 * :mod:`~tar_rl.report.plots`: :func:`plot_success_vs_neps` (the paper's Fig. 3),
-  :func:`plot_group_bars` and :func:`plot_weights` (Fig. 5), and the figure helpers.
+  :func:`plot_group_bars` and :func:`plot_weights` (Fig. 5), :func:`plot_paired_deltas` (per-seed paired
+  differences with their mean and 95% CI; :func:`paired_summary`, the numbers it draws), and the figure helpers.
 * :mod:`~tar_rl.report.phases`: :data:`PHASES`, :func:`first_gripper_close` and :func:`phase_labels`,
   a demonstration's phases from its gripper action; :func:`~tar_rl.report.phases.switch_steps` and
   :func:`~tar_rl.report.phases.label_steps`, its gripper switches and the labels of many demonstrations.
@@ -26,7 +27,13 @@ from __future__ import annotations
 from tar_rl.report.cli import main
 from tar_rl.report.load import Run, expand_run_dirs, load_run, run_file
 from tar_rl.report.phases import PHASES, first_gripper_close, phase_labels
-from tar_rl.report.plots import plot_group_bars, plot_success_vs_neps, plot_weights
+from tar_rl.report.plots import (
+    paired_summary,
+    plot_group_bars,
+    plot_paired_deltas,
+    plot_success_vs_neps,
+    plot_weights,
+)
 from tar_rl.report.stats import (
     BASELINE,
     OBJECTIVE_ORDER,
@@ -53,10 +60,12 @@ __all__ = [
     "load_run",
     "main",
     "min_detectable_effect",
+    "paired_summary",
     "paired_t",
     "paired_table",
     "phase_labels",
     "plot_group_bars",
+    "plot_paired_deltas",
     "plot_success_vs_neps",
     "plot_weights",
     "run_file",

@@ -2,6 +2,8 @@
 
 * :func:`plot_success_vs_neps` (the paper's Fig. 3), :func:`plot_group_bars` and :func:`plot_weights`
   (Fig. 5) write PNG figures atomically, with the run names and git commits in a footer.
+* :func:`plot_paired_deltas` draws paired differences (each arm minus its baseline, per seed) with their mean and
+  95% t CI (:func:`paired_summary`, the numbers it draws; :func:`draw_paired_deltas` onto a given figure).
 * :func:`new_figure` and :func:`save_png` make and write a figure; :func:`provenance` is the default
   footer of a :func:`tar_rl.report.compare` table's figure.
 
@@ -24,14 +26,18 @@ import pandas as pd
 
 from tar_rl.io import atomic_write
 from tar_rl.report.phases import first_gripper_close
-from tar_rl.report.stats import BASELINE, objective_key, table_levels
+from tar_rl.report.stats import BASELINE, objective_key, paired_t, table_levels
 from tar_rl.runs import WEIGHTS_COLUMNS
 
 __all__ = [
+    "PAIRED_SUMMARY_COLUMNS",
     "check_table",
     "check_weights_table",
+    "draw_paired_deltas",
     "new_figure",
+    "paired_summary",
     "plot_group_bars",
+    "plot_paired_deltas",
     "plot_success_vs_neps",
     "plot_weights",
     "provenance",
@@ -371,3 +377,141 @@ def _one_recording(
             f"no weights for episode {episode} of {task!r} at step {step}; episodes: {sorted(df['episode'].unique())}"
         )
     return one, task, episode, step
+
+
+#: Columns of :func:`paired_summary`.
+PAIRED_SUMMARY_COLUMNS: tuple[str, ...] = (
+    "label",
+    "group",
+    "n",
+    "mean",
+    "ci_low",
+    "ci_high",
+    "higher",
+    "lower",
+    "seeds",
+)
+
+
+def paired_summary(deltas: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
+    """Per label of a table of per-seed paired differences: what :func:`plot_paired_deltas` draws.
+
+    Args:
+        deltas: one row per (``label``, ``seed``) with the paired difference ``delta`` (arm - baseline of that
+            seed); an optional ``group`` column (the colour of the label's row; default: the label).
+        confidence: the level of the interval.
+
+    Returns:
+        One row per label, in the order the labels first appear, columns :data:`PAIRED_SUMMARY_COLUMNS`: ``n`` (seeds),
+        ``mean``, ``ci_low`` and ``ci_high`` (:func:`~tar_rl.report.paired_t`'s t interval; ``nan`` with one seed),
+        ``higher`` and ``lower`` (the seeds whose difference is above / below 0), ``seeds`` (comma-separated).
+
+    Raises:
+        ValueError: a missing column, no rows, a seed twice in one label, or a non-finite difference.
+    """
+    missing = [c for c in ("label", "seed", "delta") if c not in deltas.columns]
+    if missing:
+        raise ValueError(f"the paired differences are missing the column(s) {missing}; expected label, seed, delta")
+    if len(deltas) == 0:
+        raise ValueError("no paired differences to summarise")
+    twice = deltas[deltas.duplicated(["label", "seed"], keep=False)]
+    if len(twice):
+        raise ValueError(f"a seed appears twice in one label: {sorted(set(zip(twice['label'], twice['seed'])))}")
+    rows = []
+    for label in dict.fromkeys(deltas["label"]):
+        one = deltas[deltas["label"] == label]
+        values = one["delta"].astype(float).tolist()
+        stats = paired_t(values, confidence)
+        group = one["group"].iloc[0] if "group" in one.columns else label
+        rows.append(
+            {
+                "label": label,
+                "group": group,
+                "n": stats["n"],
+                "mean": stats["mean"],
+                "ci_low": stats["ci_low"],
+                "ci_high": stats["ci_high"],
+                "higher": sum(v > 0 for v in values),
+                "lower": sum(v < 0 for v in values),
+                "seeds": ",".join(str(s) for s in one["seed"]),
+            }
+        )
+    return pd.DataFrame(rows, columns=list(PAIRED_SUMMARY_COLUMNS))
+
+
+def draw_paired_deltas(fig, deltas: pd.DataFrame, xlabel: str = "difference", title: str | None = None) -> pd.DataFrame:
+    """Draw :func:`plot_paired_deltas`'s one axis onto ``fig``; returns the :func:`paired_summary` it drew.
+
+    One row per label, top to bottom in the order of the table: each seed's difference as an open dot (spread a
+    little up and down by seed order, so equal values stay visible), the mean as a black diamond with its 95% t CI
+    as a thick bar, and the zero line. The row's label reads ``<label> (k of n higher)``; the mean and its interval
+    are written at the right.
+    """
+    summary = paired_summary(deltas)
+    ax = fig.add_subplot()
+    groups = list(dict.fromkeys(summary["group"]))
+    colours = {g: f"C{i % 10}" for i, g in enumerate(groups)}
+    ax.axvline(0.0, color="k", linewidth=0.8, linestyle="--")
+    for row, rec in enumerate(summary.to_dict("records")):
+        y = -row
+        one = deltas[deltas["label"] == rec["label"]]
+        k = len(one)
+        offsets = np.linspace(-0.18, 0.18, k) if k > 1 else np.zeros(1)
+        colour = colours[rec["group"]]
+        ax.scatter(one["delta"].astype(float), y + offsets, s=22, facecolors="none", edgecolors=colour, linewidths=1.0)
+        if math.isfinite(rec["ci_low"]):
+            ax.plot([rec["ci_low"], rec["ci_high"]], [y, y], color="k", linewidth=2.6, solid_capstyle="butt")
+        ax.plot([rec["mean"]], [y], linestyle="none", marker="D", markersize=6, color="k")
+    labels = [f"{r['label']} ({r['higher']} of {r['n']} higher)" for r in summary.to_dict("records")]
+    ax.set_yticks([-i for i in range(len(summary))], labels, fontsize=8)
+    ax.set_ylim(-len(summary) + 0.5, 0.5)
+    for tick, rec in zip(ax.get_yticklabels(), summary.to_dict("records")):
+        tick.set_color(colours[rec["group"]])
+    for row, rec in enumerate(summary.to_dict("records")):
+        ci = f" [{rec['ci_low']:+.2f}, {rec['ci_high']:+.2f}]" if math.isfinite(rec["ci_low"]) else ""
+        ax.annotate(
+            f"{rec['mean']:+.2f}{ci}",
+            (1.0, -row),
+            xycoords=("axes fraction", "data"),
+            xytext=(4, 0),
+            textcoords="offset points",
+            va="center",
+            fontsize=7,
+        )
+    ax.set_xlabel(xlabel, fontsize=9)
+    ax.grid(True, axis="x", alpha=0.3)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return summary
+
+
+def plot_paired_deltas(
+    deltas: pd.DataFrame,
+    path: str | os.PathLike,
+    caption: str,
+    xlabel: str = "difference",
+    title: str | None = None,
+) -> Path:
+    """Paired differences at a glance: per label (an arm against its baseline), every seed's difference as a dot and
+    their mean with its 95% t CI (:func:`paired_summary`, via :func:`~tar_rl.report.paired_t`) on one axis, a zero
+    line, and how many seeds are higher.
+
+    Args:
+        deltas: one row per (``label``, ``seed``) with ``delta``; an optional ``group`` colours the rows.
+        path: the PNG to write (atomically).
+        caption: the footer (provenance).
+        xlabel: the axis's label (what the difference is, in its unit).
+        title: the title.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        ValueError: as :func:`paired_summary`.
+    """
+    paired_summary(deltas)  # refuse a bad table before drawing
+    rows = deltas["label"].nunique()
+    fig = new_figure(8.0, 1.4 + 0.42 * rows)
+    fig.subplots_adjust(left=0.3, right=0.8, top=1 - 0.45 / fig.get_figheight(), bottom=0.7 / fig.get_figheight())
+    draw_paired_deltas(fig, deltas, xlabel, title)
+    return save_png(fig, path, caption)

@@ -264,6 +264,17 @@ def test_committed_diagnosis_equals_what_the_command_computes(committed):
         assert (COMMITTED / name).read_text() == text, name
 
 
+def test_committed_r4_diagnosis_equals_what_the_command_computes():
+    """benchmarks/results/regimes/diagnosis_act is recomputed from the committed R4 runs (weights: seed 0's)."""
+    out = diag.default_out("R4")
+    assert out == COMMITTED.parent / "diagnosis_act"
+    result = diag.diagnose(DEFAULT_RUNS, label="R4")
+    assert result.pairs.weighted == (0,) and len(result.pairs.runs) == 8
+    assert (out / "diagnosis.md").read_text() == result.markdown
+    for name, text in result.csv_texts().items():
+        assert (out / name).read_text() == text, name
+
+
 def test_committed_per_dimension_recording_agrees_with_the_committed_runs(committed):
     """dims.csv.gz holds each R3 run's last recording (the committed weights.csv, to its 6 significant digits)
     with four dim losses whose mean is the step loss (the MLP head's loss is the mean over the action dims)."""
@@ -295,3 +306,164 @@ def test_the_training_data_is_opened_by_load_dataset_and_an_old_format_refused(t
     (tmp_path / "old" / "metadata.json").write_text(json.dumps({**settings, "format_version": 2}))
     with pytest.raises(SystemExit, match=r"format version 2, which this tar-rl no longer reads.*build it again"):
         training_demos(tmp_path, cfg, ("reach-v3",), {"obs_mean": [0.0]}, "dims")
+
+
+# -- R4: a chunked-heads regime, weights kept for seed 0 only ------------------------------------------------------
+
+# Gripper actions of R4's hand-made demonstrations (T = 10): reach as R3's (switch steps t 4, 7); assembly never
+# closing (no switch); basketball closing from t 2 on (switch step t 2).
+R4_GRIPPER = {"reach": GRIPPER["reach"], "assembly": [-1] * 10, "basketball": [-1, -1] + [1] * 8}
+# Success per run (2 rollouts per task, so 0, 50 or 100 %), seeds 0 and 1:
+#   uniform  reach 0 / 50,    assembly 100 / 100, basketball 50 / 0   -> means 25, 100, 25
+#   tar      reach 100 / 100, assembly 100 / 50,  basketball 50 / 50  -> Δ reach (100 + 50) / 2 = +75,
+#            assembly (0 - 50) / 2 = -25, basketball (0 + 50) / 2 = +25
+#   gentle   reach 50 / 50,   assembly 50 / 100,  basketball 50 / 0   -> Δ reach +25, assembly -25, basketball 0
+_RATE = {0: [(F, 100), (F, 100)], 50: [(S, 50), (F, 100)], 100: [(S, 50), (S, 50)]}
+R4_SUCCESS = {
+    ("uniform", 0): (0, 100, 50),
+    ("uniform", 1): (50, 100, 0),
+    ("tar", 0): (100, 100, 50),
+    ("tar", 1): (100, 50, 50),
+    ("tar_gentle", 0): (50, 50, 50),
+    ("tar_gentle", 1): (50, 100, 0),
+}
+# The uniform run's per-step loss per task (its recorded demonstrations), and TAR's weights in seed 0's tar run:
+# 3 at reach's switch steps, 2 at basketball's, 1 elsewhere; the other runs' weights are all 1.
+R4_LOSS = {"reach": 0.3, "assembly": 0.2, "basketball": 0.1}
+R4_EMPHASIS = {("reach", 4): 3.0, ("reach", 7): 3.0, ("basketball", 2): 2.0}
+# Each run's fit diagnostics over two bins of episode time: (weight_by_bin, heldout_loss_by_bin, spearman).
+R4_FIT = {
+    ("uniform", 0): ([1.2, 0.8], [0.2, 0.1], 1.0),
+    ("uniform", 1): ([1.4, 0.6], [0.4, 0.1], 1.0),
+    ("tar", 0): ([1.5, 0.5], [0.2, 0.1], 1.0),
+    ("tar", 1): ([1.3, 0.7], [0.1, 0.3], -1.0),
+    ("tar_gentle", 0): ([1.1, 0.9], [0.3, 0.2], 1.0),
+    ("tar_gentle", 1): ([1.1, 0.9], [0.3, 0.2], 1.0),
+}
+GENTLE = {"gamma": 0.5, "cap": "exact", "w_max": 1.5}
+
+
+def _r4_weights(objective: str) -> pd.DataFrame:
+    rows = []
+    for step in (1872, 3743):
+        for task, gripper in R4_GRIPPER.items():
+            for t, g in enumerate(gripper):
+                w = R4_EMPHASIS.get((task, t), 1.0) if objective == "tar" else 1.0
+                loss = R4_LOSS[task] if objective == "uniform" else 0.1
+                rows.append({"step": step, "task": task, "episode": 0, "t": t, "loss": loss, "weight": w, "gripper": g})
+    return pd.DataFrame(rows)
+
+
+def _write_r4(root, weights_seeds=(0,)):
+    """The hand-made R4 runs: configs made R4's (act, MT50, 50 demonstrations, 3743 steps), the tar_gentle run with
+    the preset's settings, weights for ``weights_seeds`` only, and each run's fit diagnostics in its summary."""
+    for (arm, seed), rates in R4_SUCCESS.items():
+        objective = "uniform" if arm == "uniform" else "tar"
+        rollouts = {task: _RATE[rate] for task, rate in zip(R4_GRIPPER, rates)}
+        name = f"{objective}-act-s{seed}-{'cafecafe' if arm == 'tar_gentle' else 'deadbeef'}"
+        weights = _r4_weights(arm) if seed in weights_seeds else None
+        path = write_run(root, objective, seed, rollouts, policy="act", name=name, steps=3743, weights=weights)
+        config = yaml.safe_load((path / "config.yaml").read_text())
+        config["data"].update(tasks=["mt50"], n_demos=50)
+        config["objective"].update(GENTLE if arm == "tar_gentle" else {"cap": "paper"})
+        config.update(logging={"record_episodes": 1}, diagnostics={"train_episodes": 10, "heldout_demos": 3})
+        (path / "config.yaml").write_text(yaml.safe_dump(config))
+        summary = json.loads((path / "summary.json").read_text())
+        w, loss, rho = R4_FIT[(arm, seed)]
+        summary["config"] = config
+        summary["fit"] = {"alignment": {"bins": 2, "spearman": rho, "weight_by_bin": w, "heldout_loss_by_bin": loss}}
+        (path / "summary.json").write_text(json.dumps(summary))
+
+
+def test_the_r4_command_on_hand_made_runs(tmp_path):
+    _write_r4(tmp_path / "runs")
+    out = tmp_path / "out"
+    assert diag.main(["--regime", "R4", "--runs", str(tmp_path / "runs"), "--out", str(out)]) == 0
+    result = diag.diagnose(tmp_path / "runs", label="R4")  # what the command wrote, unrounded (checked below)
+    tasks = result.tasks.set_index("task")
+    assert tasks["delta"].to_dict() == pytest.approx({"reach": 75.0, "assembly": -25.0, "basketball": 25.0})
+    assert tasks["uniform"].to_dict() == pytest.approx({"reach": 25.0, "assembly": 100.0, "basketball": 25.0})
+    assert tasks["tar"].to_dict() == pytest.approx({"reach": 100.0, "assembly": 75.0, "basketball": 50.0})
+    gentle = result.extra["tasks_tar_gentle"].set_index("task")
+    assert gentle["delta"].to_dict() == pytest.approx({"reach": 25.0, "assembly": -25.0, "basketball": 0.0})
+    # the weight statistics of seed 0's tar run: switch steps reach t 4, 7 (weight 3), basketball t 2 (weight 2)
+    assert tasks["switch_share"].to_dict() == pytest.approx({"reach": 0.2, "assembly": 0.0, "basketball": 0.1})
+    assert tasks.loc["reach", "weight_switch"] == pytest.approx(3.0)
+    assert tasks.loc["basketball", "weight_switch"] == pytest.approx(2.0)
+    assert math.isnan(tasks.loc["assembly", "weight_switch"])  # no switch step
+    assert tasks["weight_max"].to_dict() == pytest.approx({"reach": 3.0, "assembly": 1.0, "basketball": 2.0})
+    # ESS fraction (sum w)^2 / (T sum w^2): reach 14^2 / (10 x 26), basketball 11^2 / (10 x 13), assembly 1
+    assert tasks["weight_ess"].to_dict() == pytest.approx(
+        {"reach": 196 / 260, "assembly": 1.0, "basketball": 121 / 130}
+    )
+    assert tasks["uniform_loss"].to_dict() == pytest.approx(R4_LOSS)
+    # Spearman over the 3 tasks (Δ ranks reach 3, assembly 1, basketball 2): switch share, largest weight the same
+    # order (+1); ESS the reverse (-1); uniform loss ranks 3, 2, 1: 1 - 6 x 2 / 24 = 0.5, p 2/3 (t = 0.5 sqrt(1 / 0.75)
+    # = 1 / sqrt(3) on 1 degree of freedom: 1 - 2 atan(1 / sqrt(3)) / pi); uniform success ranks 1.5, 3, 1.5:
+    # -1.5 / sqrt(2 x 1.5) = -sqrt(3) / 2, p 1/3 (t = -sqrt(3)); weight at switches: 2 tasks, no ranking.
+    corr = result.extra["correlations"].set_index(["arm", "statistic"])
+    tar = corr.loc["tar"]
+    assert tar["rho"].to_dict() == pytest.approx(
+        {
+            "switch_share": 1.0,
+            "weight_switch": math.nan,
+            "weight_max": 1.0,
+            "weight_ess": -1.0,
+            "uniform_loss": 0.5,
+            "uniform": -math.sqrt(3) / 2,
+        },
+        nan_ok=True,
+    )
+    assert tar.loc["weight_switch", "tasks"] == 2 and tar.loc["uniform", "tasks"] == 3
+    assert tar.loc["uniform_loss", "p"] == pytest.approx(2 / 3)
+    assert tar.loc["uniform", "p"] == pytest.approx(1 / 3)
+    # Holm over the 5 p-values (0, 0, 0, 1/3, 2/3): the fourth (5 - 3) x 1/3, the fifth max(2/3, 1 x 2/3)
+    assert tar.loc["uniform", "holm_p"] == pytest.approx(2 / 3)
+    assert tar.loc["uniform_loss", "holm_p"] == pytest.approx(2 / 3)
+    assert tar.loc["switch_share", "holm_p"] == pytest.approx(0.0, abs=1e-12)
+    # tar_gentle's weights are all 1: its weight statistics do not rank the tasks
+    assert corr.loc[("tar_gentle", "weight_max"), ["rho", "p"]].isna().all()
+    assert corr.loc[("tar_gentle", "uniform_loss"), "rho"] == pytest.approx(0.5)
+    # the weight over episode time: every seed's summary, mean and sd over the two seeds
+    bins = result.extra["bins"].set_index(["arm", "bin"])
+    assert bins.loc[("tar", 0), "weight"] == pytest.approx(1.4)
+    assert bins.loc[("tar", 0), "weight_sd"] == pytest.approx(0.2 / math.sqrt(2))
+    assert bins.loc[("tar", 1), "heldout_loss"] == pytest.approx(0.2)
+    assert bins.loc[("tar", 0), "alignment"] == pytest.approx(0.0)  # (+1 - 1) / 2
+    assert bins.loc[("uniform", 0), "heldout_loss"] == pytest.approx(0.3) and (bins["seeds"] == 2).all()
+    # phases and switches: seed 0 only, said so
+    phases_ = result.phases
+    assert (phases_["seeds"] == 1).all() and set(phases_["objective"]) == {"uniform", "tar", "tar_gentle"}
+    switches = result.switches.set_index(["objective", "at", "seed"])
+    # tar at the last step: switch steps weigh (3 + 3 + 2) / 3, the 27 others 1
+    assert switches.loc[("tar", "last", "0"), "switch_ratio"] == pytest.approx(8 / 3)
+    md = (out / "diagnosis.md").read_text()
+    assert "only seed 0 of the 2 keep their recorded weights" in md
+    assert "# R4 diagnosis (`act`)" in md and "`tar` higher: reach (+75.0), basketball (+25.0)." in md
+    assert "`tar_gentle` lower: assembly (-25.0)." in md
+    assert "at Holm p < 0.05: switch_share, weight_max, weight_ess." in md
+    for name in ("scatter.png", "bins.png", "weights_time.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG", name
+    assert result.markdown == md
+    assert set(result.csv_texts()) == {f"{n}.csv" for n in ("phases", "switches", "tasks", "tasks_tar_gentle")} | {
+        "correlations.csv",
+        "bins.csv",
+    }
+    for name, text in result.csv_texts().items():
+        assert (out / name).read_text() == text, name
+
+
+def test_r4_refusals_name_the_regime_and_what_is_missing(tmp_path):
+    _write_r3(tmp_path / "r3")
+    with pytest.raises(SystemExit, match=r"no R4 runs in .*r3 \(runs whose config has policy.name act, data.tasks"):
+        diag.diagnose(tmp_path / "r3", label="R4")
+    _write_r4(tmp_path / "r4", weights_seeds=())
+    with pytest.raises(SystemExit, match=r"no R4 seed has weights recorded by every arm at training steps"):
+        diag.diagnose(tmp_path / "r4", label="R4")
+    with pytest.raises(SystemExit, match="no R3 runs"):
+        diag.diagnose(tmp_path / "r4")
+    _write_r4(tmp_path / "dims")
+    with pytest.raises(SystemExit, match="per-dimension recording is R3's; R4 has none"):
+        diag.diagnose(tmp_path / "dims", tmp_path / "dims.csv.gz", label="R4")
+    with pytest.raises(SystemExit, match="no regime 'R9'"):
+        diag.diagnose(tmp_path / "dims", label="R9")

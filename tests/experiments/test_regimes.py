@@ -244,6 +244,7 @@ def test_chunked_regimes_run_at_the_ci_scale_three_arms_a_seed(chunked):
     for row in ("| R4 tar |", "| R4 tar_gentle |", "| R5 tar |", "| R5 tar_gentle |", "| R4 | act | tar_gentle |"):
         assert row in md
     assert (out / "fig3_chunked.png").read_bytes()[:4] == b"\x89PNG"
+    assert (out / "fig_paired.png").read_bytes()[:4] == b"\x89PNG"  # R4 and R5, one seed each: no interval
     assert set(json.loads((out / "chunked_started.json").read_text())) == {"R4", "R5"}
 
 
@@ -390,3 +391,37 @@ def test_the_chunked_differences_per_device_are_the_means_over_each_devices_seed
     assert "| R4 tar | cpu | 0,1 | 75.0 | +1.50 | 1 of 2 |" in by_device_markdown(list(rows.values()))
     one_kind = {arm: [r for r in runs if r.summary["machine"]["device"] == "cpu"] for arm, runs in loaded.items()}
     assert by_device_markdown(by_device("R4", one_kind)) == ""  # one kind of device: no section
+
+
+# -- The paired differences at a glance (fig_paired.png) --------------------------------------------------------
+
+
+def test_the_chunked_paired_rows_are_each_arm_minus_uniform_per_seed():
+    from benchmarks.studies.regimes_table import chunked_paired_rows
+
+    loaded = {
+        "uniform": [_device_run(0, 0.70, "cpu"), _device_run(1, 0.80, "cpu")],
+        "tar": [_device_run(0, 0.75, "cpu"), _device_run(1, 0.78, "cpu")],
+        "tar_gentle": [_device_run(0, 0.70, "cpu"), _device_run(1, 0.90, "cpu")],
+    }
+    rows = chunked_paired_rows({"R4": loaded}, {"R4": "act"})
+    # by hand, in points: tar +5, -2; tar_gentle 0, +10
+    assert [(r["label"], r["group"], r["seed"]) for r in rows] == [
+        ("R4 act: tar", "R4", 0),
+        ("R4 act: tar", "R4", 1),
+        ("R4 act: tar_gentle", "R4", 0),
+        ("R4 act: tar_gentle", "R4", 1),
+    ]
+    assert [r["delta"] for r in rows] == pytest.approx([5.0, -2.0, 0.0, 10.0])
+
+
+def test_r6s_rows_are_read_from_its_tables_paired_file(tmp_path):
+    from types import SimpleNamespace
+
+    from benchmarks.studies.regimes_table import _r6_source
+
+    ctx = SimpleNamespace(out=tmp_path)
+    assert _r6_source(ctx, {}) == []
+    (tmp_path / "r6").mkdir()
+    (tmp_path / "r6" / "paired.csv").write_text("label,group,seed,delta\nR6 act: shuffle,R6,0,2.5\n")
+    assert _r6_source(ctx, {}) == [{"label": "R6 act: shuffle", "group": "R6", "seed": 0, "delta": 2.5}]

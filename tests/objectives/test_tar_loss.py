@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -15,6 +16,7 @@ from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
 from torchrl.objectives import BCLoss, LossModule
 
 from tar_rl import WEIGHTINGS, MixSchedule, TARLoss
+from tar_rl.objectives import PerturbedTarget, PerturbParams
 
 OBS, ACT, L = 5, 3, 6
 LENGTHS = (3, 9, 4, 12, 7, 2)  # shorter than L somewhere, so the sampler pads
@@ -325,6 +327,28 @@ class TestPerturbationControls:
             top = set(steps[i].topk(k).indices.tolist()) if k else set()
             assert set(changed[i].nonzero().flatten().tolist()) == top
         assert out["perturbed_fraction"].item() == pytest.approx((changed.sum() / valid.sum()).item())
+
+    @pytest.mark.parametrize("which", ["high", "low"])
+    def test_the_control_needs_its_wrapper(self, which):
+        """Without a PerturbedTarget of its kind the control's weights alone would be the uniform mean: refused."""
+        inner = BCLoss(make_actor(), loss_function="mse", reduction="none")
+        with pytest.raises(ValueError, match=rf"perturb_{which} weighting trains on a corrupted target.*BCLoss\."):
+            TARLoss(inner, f"perturb_{which}")
+        other = "low" if which == "high" else "high"
+        with pytest.raises(ValueError, match=rf"PerturbedTarget\(inner, '{which}'.*got PerturbedTarget \({other}\)"):
+            TARLoss(PerturbedTarget(inner, other, PerturbParams()), f"perturb_{which}")
+
+    def test_the_wrapper_resumes_its_draws(self, segments):
+        """The wrapper's generator is in the objective's state: a copy loaded from it draws the same numbers."""
+        loss = make_loss("perturb_high", perturb_fraction=0.5, perturb_scale=1.0, seed=4)
+        loss(segments)
+        state = copy.deepcopy(loss.state_dict())
+        resumed = make_loss("perturb_high", perturb_fraction=0.5, perturb_scale=1.0, seed=4)
+        resumed.load_state_dict(state)
+        fresh = make_loss("perturb_high", perturb_fraction=0.5, perturb_scale=1.0, seed=4)
+        expected, got, first = loss(segments), resumed(segments), fresh(segments)
+        assert torch.equal(got["loss_tar"], expected["loss_tar"])
+        assert not torch.equal(first["loss_tar"], expected["loss_tar"])  # the second draw differs from the first
 
 
 @pytest.mark.parametrize("name", sorted(WEIGHTINGS))

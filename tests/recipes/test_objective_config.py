@@ -22,10 +22,10 @@ from tar_reference import ref_segment_loss, ref_weights
 from tensordict import TensorDict
 
 from tar_rl.cli import main as cli_main
-from tar_rl.objectives import WEIGHTINGS, MixSchedule, tar_weights
+from tar_rl.objectives import WEIGHTINGS, MixSchedule, PerturbedTarget, tar_weights
 from tar_rl.policies import DataInfo
 from tar_rl.recipes import ConfigError, identity, make_objective, make_policy, run_name, validate
-from tar_rl.recipes.config import ObjectiveConfig, typed_config
+from tar_rl.recipes.config import ObjectiveConfig, objective_config, typed_config
 
 COMMON = {f.name for f in dataclasses.fields(ObjectiveConfig)}
 
@@ -42,7 +42,14 @@ def test_each_weighting_composes_its_own_parameters_and_no_others(name):
 def test_focal_shows_focal_settings_and_refuses_tar_ones(capsys):
     assert cli_main(["train", "--cfg", "job", "objective=focal"]) == 0
     shown = yaml.safe_load(capsys.readouterr().out)["objective"]
-    assert shown == {"name": "focal", "start": 0.2, "ramp": 0.3, "shape": "linear", "compile": "auto"} | {
+    assert shown == {
+        "name": "focal",
+        "start": 0.2,
+        "ramp": 0.3,
+        "shape": "linear",
+        "compile": "auto",
+        "signal": "loss",
+    } | {
         "focal_beta": 1.0,
         "w_max": 3.0,
     }
@@ -103,6 +110,7 @@ def test_the_default_job_computes_eq2_with_tar_defaults_bit_for_bit():
         "ramp": 0.3,
         "shape": "linear",
         "compile": "auto",
+        "signal": "loss",
         "gamma": 1.0,
         "w_max": 3.0,
         "eps": 1e-8,
@@ -130,3 +138,57 @@ def test_the_default_job_computes_eq2_with_tar_defaults_bit_for_bit():
         reference_weights = ref_weights(losses.tolist(), valid.tolist(), mix=min(max((step - 2) / 3, 0.0), 1.0))
         reference = ref_segment_loss(losses.tolist(), reference_weights, valid.tolist())
         assert out["loss_tar"].item() == pytest.approx(reference, rel=1e-5)
+
+
+@pytest.mark.parametrize("name", list(WEIGHTINGS))
+def test_the_job_wraps_a_perturbation_controls_head_loss_and_no_other(name):
+    policy = make_policy(typed_config(compose_config()).policy, DataInfo())
+    objective = make_objective(objective_config(name)(name=name), 10, 3, policy)
+    which = WEIGHTINGS[name].perturb
+    if which is None:
+        assert objective.inner is policy.loss
+        return
+    assert isinstance(objective.inner, PerturbedTarget) and objective.inner.inner is policy.loss
+    assert objective.inner.which == which and objective.inner.params == objective.params
+    assert torch.equal(objective.inner.generator.get_state(), torch.Generator().manual_seed(3).get_state())
+
+
+def test_the_ranking_signal_and_time_sampling_at_their_defaults_name_the_same_runs():
+    for default, explicit in (
+        ((), ("objective.signal=loss",)),
+        (("policy=flow",), ("policy=flow", "objective.signal=loss", "policy.time_sampling=step")),
+        (("policy=flow", "objective=uniform"), ("policy=flow", "objective=uniform", "objective.signal=loss")),
+    ):
+        assert run_name(compose_config(*explicit)) == run_name(compose_config(*default))
+    saved_before = compose_config("policy=flow")  # a config saved before the settings existed
+    del saved_before["objective"]["signal"], saved_before["policy"]["time_sampling"]
+    assert run_name(saved_before) == run_name(compose_config("policy=flow")) and identity(saved_before) == {}
+    chosen = compose_config("policy=flow", "objective.signal=action_error", "policy.time_sampling=segment")
+    assert identity(chosen) == {"objective": {"signal": "action_error"}, "policy": {"time_sampling": "segment"}}
+    validate(chosen)
+
+
+def test_a_signal_the_head_does_not_offer_is_refused_naming_the_head_and_its_signals():
+    with pytest.raises(ConfigError) as refused:
+        validate(compose_config("objective.signal=action_error"))
+    assert str(refused.value) == (
+        "objective.signal='action_error' is not a ranking signal of the mlp head, which offers ['loss']; use loss, "
+        "or with policy=flow action_error or time_normalized"
+    )
+    with pytest.raises(ConfigError, match=r"the flow head, which offers \['loss', 'action_error', 'time_normalized'\]"):
+        validate(compose_config("policy=flow", "objective.signal=action_errors"))
+    with pytest.raises(ConfigError, match=r"objective=tar_arm scores per-element losses; use objective.signal=loss"):
+        validate(compose_config("policy=flow", "objective=tar_arm", "objective.signal=time_normalized"))
+    with pytest.raises(ConfigError, match=r"policy.time_sampling must be one of \['step', 'segment'\], got 'batch'"):
+        validate(compose_config("policy=flow", "policy.time_sampling=batch"))
+
+
+def test_the_help_shows_the_signal_and_the_time_sampling(capsys):
+    for args, line in (
+        (["train", "--help"], "  signal: loss"),
+        (["train", "policy=flow", "--help"], "  time_sampling: step"),
+    ):
+        with pytest.raises(SystemExit) as done:
+            cli_main(args)
+        assert not done.value.code
+        assert line in capsys.readouterr().out.splitlines()

@@ -447,6 +447,57 @@ def test_dro_time_trains_through_the_recipe_and_resumes_exactly(tmp_path, data_r
     assert torch.equal(resumed["objective"]["weighting_state.value"], log_q)
 
 
+def test_a_flow_run_ranking_by_its_time_normalized_loss_resumes_exactly(tmp_path, data_root, monkeypatch):
+    # The running mean per time bin is part of the objective's state in the checkpoint, so a resumed run
+    # continues it (and the per-segment draws of the flow head, from the checkpointed torch RNG) exactly.
+    overrides = (
+        "policy=flow",
+        "policy.dim=16",
+        "policy.heads=2",
+        "policy.layers=1",
+        "policy.expert_dim=16",
+        "policy.expert_layers=1",
+        "policy.time_sampling=segment",
+        "objective.signal=time_normalized",
+        "objective.start=0",
+        "objective.ramp=0",
+        "logging.record_weights_at=[-1]",
+        "eval.rollouts=0",
+        "diagnostics.heldout_demos=0",
+    )
+    run_dir = train(tiny(tmp_path / "whole", data_root, *overrides))
+    whole = _final_state(run_dir)
+    weight = whole["objective"]["inner.signal_state.weight"]
+    assert weight.shape == (32,) and (weight > 0).any()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["finished"] and summary["config"]["objective"]["signal"] == "time_normalized"
+    rows = pd.read_csv(run_dir / "weights.csv")
+    assert rows.weight.notna().all() and rows.loss.notna().all()
+
+    config = tiny(tmp_path / "resumed", data_root, *overrides)
+    original, calls = SegmentSampler.sample, {"n": 0}
+
+    def sample(self):
+        calls["n"] += 1
+        if calls["n"] == 17:  # steps 1..16 done; the last checkpoint is step 10's
+            raise _Crash
+        return original(self)
+
+    monkeypatch.setattr(SegmentSampler, "sample", sample)
+    with pytest.raises(_Crash):
+        train(config)
+    (resumed_dir,) = list(Path(config["runs_root"]).iterdir())
+    saved = load_checkpoint(resumed_dir)
+    assert saved["step"] == 10 and not torch.equal(saved["objective"]["inner.signal_state.weight"], weight)
+    monkeypatch.setattr(SegmentSampler, "sample", original)
+    train(config)
+    resumed = _final_state(resumed_dir)
+    _assert_same_training(whole, resumed)
+    for name in ("total", "weight"):
+        key = f"inner.signal_state.{name}"
+        assert torch.equal(resumed["objective"][key], whole["objective"][key])
+
+
 def test_smoke_run_writes_every_output(smoke_run):
     run_dir, _ = smoke_run
     assert run_dir.name.startswith("tar-mlp-s0-")

@@ -390,3 +390,69 @@ def test_label_steps_sorts_and_flags_switches_and_their_neighbours_per_demonstra
     assert df["switch"].tolist() == [False, False, True, False, True] + [False] * 5
     assert df["near_switch"].tolist() == [False, True, True, True, True] + [False] * 5
     assert set(df.columns) >= {"phase", "switch", "near_switch"}
+
+
+# ---------------------------------------------------------------- paired differences at a glance
+
+# Per-seed paired differences. A: 1, 2, 6 -> mean 3, sd sqrt((4 + 1 + 9) / 2) = sqrt(7), se sqrt(7 / 3); the 97.5%
+# t quantile with 2 degrees of freedom is 4.302653 (t tables): CI 3 -+ 4.302653 sqrt(7 / 3). B: -1, -3 -> mean -2,
+# sd sqrt(2), se 1, t(0.975, 1) = 12.706205: CI -2 -+ 12.706205. C: one seed, 0: no interval, neither higher nor lower.
+PAIRED = pd.DataFrame(
+    {
+        "label": ["A", "A", "A", "B", "B", "C"],
+        "group": ["R4", "R4", "R4", "R5", "R5", "R6"],
+        "seed": [0, 1, 2, 0, 1, 3],
+        "delta": [1.0, 2.0, 6.0, -1.0, -3.0, 0.0],
+    }
+)
+HALF_A = 4.302653 * math.sqrt(7 / 3)
+
+
+def test_paired_summary_against_hand_values():
+    got = report.paired_summary(PAIRED).set_index("label")
+    assert list(got.index) == ["A", "B", "C"]
+    assert got["n"].tolist() == [3, 2, 1]
+    assert got["mean"].tolist() == pytest.approx([3.0, -2.0, 0.0])
+    assert got.loc["A", ["ci_low", "ci_high"]].tolist() == pytest.approx([3 - HALF_A, 3 + HALF_A], abs=1e-5)
+    assert got.loc["B", ["ci_low", "ci_high"]].tolist() == pytest.approx([-2 - 12.706205, -2 + 12.706205], abs=1e-5)
+    assert math.isnan(got.loc["C", "ci_low"]) and math.isnan(got.loc["C", "ci_high"])
+    assert got["higher"].tolist() == [3, 0, 0] and got["lower"].tolist() == [0, 2, 0]
+    assert got["seeds"].tolist() == ["0,1,2", "0,1", "3"] and got["group"].tolist() == ["R4", "R5", "R6"]
+    with pytest.raises(ValueError, match=r"missing the column\(s\) \['delta'\]"):
+        report.paired_summary(PAIRED.drop(columns="delta"))
+    with pytest.raises(ValueError, match=r"a seed appears twice in one label: \[\('A', 1\)\]"):
+        report.paired_summary(pd.concat([PAIRED, PAIRED.iloc[[1]]]))
+    with pytest.raises(ValueError, match="must be finite"):
+        report.paired_summary(PAIRED.assign(delta=[1.0, math.inf, 6.0, -1.0, -3.0, 0.0]))
+
+
+def test_the_paired_figure_draws_its_summary_on_one_axis(tmp_path):
+    from tar_rl.report.plots import draw_paired_deltas, new_figure
+
+    fig = new_figure(8.0, 3.0)
+    summary = draw_paired_deltas(fig, PAIRED, "Δ success")
+    assert len(fig.axes) == 1
+    ax = fig.axes[0]
+    assert [t.get_text() for t in ax.get_yticklabels()] == [
+        "A (3 of 3 higher)",
+        "B (0 of 2 higher)",
+        "C (0 of 1 higher)",
+    ]
+    # the means as diamonds at rows 0, -1, -2; the intervals as the thick bars (C has none); the zero line
+    means = [line for line in ax.get_lines() if line.get_marker() == "D"]
+    assert [line.get_xdata()[0] for line in means] == pytest.approx([3, -2, 0])
+    assert [line.get_ydata()[0] for line in means] == [0, -1, -2]
+    bars = [line for line in ax.get_lines() if line.get_linewidth() == pytest.approx(2.6)]
+    assert [x for line in bars for x in line.get_xdata()] == pytest.approx(
+        [3 - HALF_A, 3 + HALF_A, -2 - 12.706205, -2 + 12.706205], abs=1e-5
+    )
+    assert any(list(line.get_xdata()) == [0.0, 0.0] for line in ax.get_lines())  # axvline at 0
+    # every seed's dot: x the difference, y its row spread by seed order
+    dots = [c.get_offsets() for c in ax.collections]
+    assert [list(d[:, 0]) for d in dots] == [[1.0, 2.0, 6.0], [-1.0, -3.0], [0.0]]
+    assert list(dots[0][:, 1]) == pytest.approx([-0.18, 0.0, 0.18]) and list(dots[2][:, 1]) == [-2.0]
+    assert summary["mean"].tolist() == pytest.approx([3.0, -2.0, 0.0])
+    texts = [t.get_text() for t in ax.texts]
+    assert texts[0] == f"+3.00 [{3 - HALF_A:+.2f}, {3 + HALF_A:+.2f}]" and texts[2] == "+0.00"
+    out = report.plot_paired_deltas(PAIRED, tmp_path / "figs" / "paired.png", caption="runs x | git: abc")
+    assert out.read_bytes()[:8] == PNG_MAGIC
