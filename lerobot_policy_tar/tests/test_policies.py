@@ -80,10 +80,10 @@ def test_tar_settings_have_the_names_and_defaults_of_tar_rls_objective():
     [
         ("gamma", 0.0, "policy.tar: gamma must be a finite number > 0"),
         ("gamma", math.inf, "policy.tar: gamma must be a finite number > 0"),
-        ("w_max", -1.0, "policy.tar: w_max must be a number > 0"),
+        ("w_max", "3", "policy.tar: w_max must be a number >= 1"),
         ("eps", 0.0, "policy.tar: eps must be a finite number > 0"),
         ("cap", "soft", "policy.tar: cap must be one of"),
-        ("w_max", 0.5, None),  # allowed with the paper's cap
+        ("w_max", 0.5, "policy.tar: w_max >= 1 is needed .*cap='paper' renormalises them above it"),
         ("start", -1, "policy.tar: schedule start must be an int >= 0"),
         ("ramp", 2.5, "policy.tar: schedule ramp must be an int >= 0"),
         ("shape", "step", "policy.tar: schedule shape must be one of"),
@@ -92,11 +92,6 @@ def test_tar_settings_have_the_names_and_defaults_of_tar_rls_objective():
     ],
 )
 def test_tar_fields_out_of_range_are_refused_with_their_name(field, value, message):
-    if message is None:
-        TARSettings(**{field: value}).validate()
-        with pytest.raises(ValueError, match="w_max >= 1 is needed by cap='exact'"):
-            TARSettings(**{field: value, "cap": "exact"}).validate()
-        return
     with pytest.raises(ValueError, match=message):
         TARSettings(**{field: value}).validate()
     config = act_config(**{field: value})  # the command line's parser builds it; the dataset and the policy refuse it
@@ -107,6 +102,24 @@ def test_tar_fields_out_of_range_are_refused_with_their_name(field, value, messa
     ):
         with pytest.raises(ValueError, match=message):
             read()
+
+
+@pytest.mark.parametrize("cap", ["paper", "exact"])
+@pytest.mark.parametrize("w_max", [0.5, 0.999, 1.0, 3.0, math.inf])
+def test_w_max_follows_tar_rls_one_rule_with_either_cap(w_max, cap):
+    """The plugin refuses what tar-rl's ``TARParams`` refuses, with its message: ``w_max`` below 1, either cap."""
+    from tar_rl.objectives.tar import TARParams
+
+    try:
+        TARParams(w_max=w_max, cap=cap)
+    except ValueError as error:
+        assert w_max < 1
+        with pytest.raises(ValueError) as ours:
+            TARSettings(w_max=w_max, cap=cap).validate()
+        assert str(ours.value) == f"policy.tar: {error}"
+    else:
+        assert w_max >= 1
+        TARSettings(w_max=w_max, cap=cap).validate()
 
 
 def test_unknown_base_policies_and_pi0_fast_are_refused_with_the_reason():
