@@ -51,6 +51,12 @@ def _entry_valid(batch: dict[str, Any], loss: Tensor) -> Tensor:
     return torch.ones(loss.shape[:2], dtype=torch.bool, device=loss.device) if is_pad is None else ~is_pad
 
 
+def _fill_missing_tar_step(module, state_dict, prefix, *args) -> None:
+    """A state dict without ``tar_step`` (a base policy's checkpoint: post-training starts from one) loads with the
+    schedule at step 0 instead of LeRobot's warning about a missing key."""
+    state_dict.setdefault(prefix + "tar_step", torch.zeros((), dtype=torch.long))
+
+
 def _world_size() -> int:
     distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
     return torch.distributed.get_world_size() if distributed else 1
@@ -60,7 +66,8 @@ class TARPolicyMixin:
     """The training forward of every TAR policy (the first base of each; the second is the LeRobot policy).
 
     The policy counts its training forwards in the buffer ``tar_step`` (saved with the weights, so a resumed run
-    continues TAR's schedule) and reads ``policy.tar`` (:class:`~lerobot_policy_tar.configuration_tar.TARSettings`).
+    continues TAR's schedule; a checkpoint without it, a base policy's, starts it at 0) and reads ``policy.tar``
+    (:class:`~lerobot_policy_tar.configuration_tar.TARSettings`).
     """
 
     #: The base policy's name for the mean of its element losses over the real entries (ACT: ``l1_loss``), logged.
@@ -71,6 +78,7 @@ class TARPolicyMixin:
         check_segment_fits(config, dataset_meta)
         super().__init__(config, **kwargs)
         self.register_buffer("tar_step", torch.zeros((), dtype=torch.long))
+        self.register_load_state_dict_pre_hook(_fill_missing_tar_step)
         #: The dataset's frames, for ``tar_epochs`` (unknown without the dataset: at inference).
         self.tar_dataset_frames = None if dataset_meta is None else int(dataset_meta.total_frames)
 
