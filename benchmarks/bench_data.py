@@ -2,8 +2,8 @@
 
 Run from the repository root::
 
-    .venv/bin/python benchmarks/bench_data.py [--quick] [--tasks mt10] [--demos 10] [--workers N] [--out PATH]
-    .venv/bin/python benchmarks/bench_data.py --sections startup [--root DIR] --out benchmarks/results/startup.csv
+    .venv/bin/python -m benchmarks.bench_data [--quick] [--tasks mt10] [--demos 10] [--workers N] [--out PATH]
+    .venv/bin/python -m benchmarks.bench_data --sections startup [--root DIR] --out benchmarks/results/startup.csv
 
 Sections:
 
@@ -52,10 +52,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 from tar_rl.io import write_csv_atomic
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "data.csv"

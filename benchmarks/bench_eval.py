@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    .venv/bin/python benchmarks/bench_eval.py [--quick] [--tasks T] [--rollouts R] [--workers W] [--out PATH]
+    .venv/bin/python -m benchmarks.bench_eval [--quick] [--tasks T] [--rollouts R] [--workers W] [--out PATH]
 
 The policy is a TRAINED small MLP (tar-rl's ``mlp`` head, 2 x 256, learned task embedding,
 normalised observations), fitted by behaviour cloning (plain MSE, ``--train-steps`` AdamW steps)
@@ -51,7 +51,6 @@ import argparse
 import functools
 import itertools
 import math
-import sys
 import tempfile
 import time
 import warnings
@@ -62,9 +61,6 @@ import numpy as np
 import pandas as pd
 
 from tar_rl.io import write_csv_atomic
-
-# Spawned workers import this module by name: keep its folder importable.
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 DEFAULT_TASKS = "reach,drawer-close,button-press-topdown,door-open,pick-place,plate-slide"
 COLUMNS = [
@@ -347,8 +343,8 @@ def main(argv=None) -> pd.DataFrame:
         args.demos, args.train_steps = 2, 50
 
     import torch
-    from common import git_commit
 
+    from benchmarks.common import git_commit
     from tar_rl.collectors.metaworld import tasks
     from tar_rl.collectors.metaworld.evaluate import RolloutPool, available_cores
 

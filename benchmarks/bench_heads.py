@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    .venv/bin/python benchmarks/bench_heads.py [--quick] [--device cpu|cuda] [--heads a,b] [--out PATH]
+    .venv/bin/python -m benchmarks.bench_heads [--quick] [--device cpu|cuda] [--heads a,b] [--out PATH]
 
 Every head in ``tar_rl.policies.POLICIES`` (a head registered later appears without change here)
 is built from its config defaults with ``DataInfo(chunk_horizon=8, history=2)`` (the data
@@ -28,7 +28,8 @@ over rounds are reported.
 The synthetic batch carries every dataset entry (``observation``, ``task_id``, ``action``,
 ``action_chunk`` + ``action_chunk_valid``, ``observation_history`` + ``observation_history_valid``,
 ``("collector", "mask")``); a quarter of the segments end early (padding, chunks running past the
-end, history before the start), as in ``benchmarks/bench_objective.py``.
+end, history before the start), as in ``benchmarks/bench_objective.py``; it and the training step are built by
+:mod:`benchmarks.head_steps`, which the ``--against`` workers run.
 
 Output: a table on stdout and one tidy CSV (default ``benchmarks/results/heads.csv``), one row per
 (section, head, variant) with columns ``section, head, variant, median, iqr, unit,
@@ -46,7 +47,6 @@ import math
 import os
 import sys
 import time
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -54,20 +54,17 @@ import pandas as pd
 import torch
 from tensordict import TensorDict
 
+from benchmarks.common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
+from benchmarks.head_steps import N_TASKS, OBS_DIM, build, make_batch, make_step, sync
 from tar_rl.io import write_csv_atomic
-from tar_rl.objectives import TARLoss, compiles_weights
-from tar_rl.policies import POLICIES, DataInfo, build_policy
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
+from tar_rl.objectives import compiles_weights
+from tar_rl.policies import POLICIES
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "heads.csv"
 DEFAULT_AGAINST_OUT = REPO / "benchmarks" / "results" / "heads_against.csv"
+STEPS = REPO / "benchmarks" / "head_steps.py"  # run by its path by the --against workers (its docstring says why)
 
-OBS_DIM, ACTION_DIM, N_TASKS = 39, 4, 50
-CHUNK_HORIZON, HISTORY = 8, 2
-PAD_SEGMENT_FRACTION = 0.25
 OBJECTIVES = ("uniform", "tar")
 BASELINE_HEAD = "mlp"
 TAR_TARGET = 1.02
@@ -85,105 +82,8 @@ COLUMNS = [
 
 
 # ---------------------------------------------------------------------------------------------
-# Data and variants
+# Inference (the training step: benchmarks.head_steps)
 # ---------------------------------------------------------------------------------------------
-
-
-def make_batch(batch: int, slice_len: int, seed: int = 0) -> TensorDict:
-    """A ``[B, L]`` batch with every dataset entry, as the recipe's segment sampler returns it.
-
-    Episodes are random walks; a quarter of the segments end early (padding repeats the last
-    real step, ``("collector", "mask")`` False there); chunks and histories are cut from the
-    episode with their validity flags (past the end: the last action repeated; before the start:
-    the first observation repeated).
-    """
-    g = torch.Generator().manual_seed(seed)
-    total = slice_len + CHUNK_HORIZON + HISTORY
-    obs = torch.randn(batch, total, OBS_DIM, generator=g).cumsum(1) * 0.1
-    act = (torch.rand(batch, total, ACTION_DIM, generator=g) * 2 - 1).clamp(-1, 1)
-    task = torch.randint(N_TASKS, (batch,), generator=g)
-    short = torch.rand(batch, generator=g) < PAD_SEGMENT_FRACTION
-    length = torch.where(short, torch.randint(2, slice_len, (batch,), generator=g), slice_len)
-    start = torch.where(torch.rand(batch, generator=g) < 0.25, 0, HISTORY - 1)  # some segments open an episode
-    steps = torch.arange(slice_len)
-    mask = steps[None] < length[:, None]
-    last = torch.minimum(steps[None], (length - 1)[:, None])  # [B, L] padding repeats the last real step
-    t = start[:, None] + last  # time index in the episode buffer
-    extra = torch.where(short, 0, torch.randint(0, CHUNK_HORIZON + 1, (batch,), generator=g))
-    end = start + length - 1 + extra  # the episode's last real step: short segments end with their episode
-
-    def take(x, idx):
-        return x[torch.arange(batch)[:, None, None], idx]
-
-    h_idx = t[..., None] - torch.arange(HISTORY - 1, -1, -1)  # oldest first
-    h_valid = h_idx >= 0
-    history = take(obs, h_idx.clamp_min(0))
-    c_idx = t[..., None] + torch.arange(CHUNK_HORIZON)
-    c_valid = c_idx <= end[:, None, None]
-    chunk = take(act, torch.minimum(c_idx, end[:, None, None]))
-    return TensorDict(
-        {
-            "observation": take(obs, t[..., None])[:, :, 0],
-            "task_id": task[:, None].expand(batch, slice_len).clone(),
-            "action": take(act, t[..., None])[:, :, 0],
-            "action_chunk": chunk,
-            "action_chunk_valid": c_valid,
-            "observation_history": history,
-            "observation_history_valid": h_valid,
-            ("collector", "mask"): mask,
-        },
-        [batch, slice_len],
-    )
-
-
-def data_info() -> DataInfo:
-    return DataInfo(obs_dim=OBS_DIM, action_dim=ACTION_DIM, chunk_horizon=CHUNK_HORIZON, history=HISTORY)
-
-
-def build(head: str, seed: int, compiled: bool = False):
-    """``head`` at its config defaults (``compiled``: with ``compile=True``, the compiled attention)."""
-    torch.manual_seed(seed)
-    cfg = POLICIES[head].config()
-    if compiled:
-        cfg = dataclasses.replace(cfg, compile=True)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "The name target_actor_network_params", UserWarning)
-        return build_policy(cfg, data_info())
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def make_step(
-    head: str,
-    objective: str,
-    batch: TensorDict,
-    device: torch.device,
-    amp: bool,
-    seed: int,
-    compile_weights: str = "auto",
-    compiled: bool = False,
-):
-    """One training step of ``head`` under ``objective`` on its own copy and its own AdamW."""
-    policy = build(head, seed, compiled)
-    loss = TARLoss(policy.loss, objective, loss_key=policy.loss_key, compile_weights=compile_weights)
-    if policy.event_valid is not None:
-        loss.set_keys(event_valid=policy.event_valid)
-    loss = loss.to(device)
-    optimizer = torch.optim.AdamW(loss.parameters(), lr=1e-4)
-    use_amp = amp and device.type == "cuda"
-
-    def step() -> None:
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
-            out = loss(batch)
-        out["loss_tar"].backward()
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        _sync(device)
-
-    return step
 
 
 def make_inference(head: str, n_envs: int, calls: int, device: torch.device, seed: int):
@@ -206,7 +106,7 @@ def make_inference(head: str, n_envs: int, calls: int, device: torch.device, see
         state["i"] += 1
         with torch.no_grad():
             actor(td)
-        _sync(device)
+        sync(device)
 
     return call
 
@@ -311,38 +211,9 @@ def bench_inference(heads, args, device) -> list[dict]:
 # ---------------------------------------------------------------------------------------------
 
 
-def serve(args: argparse.Namespace) -> None:
-    """Worker mode (``--serve``): time training steps on request, with whatever ``tar_rl`` this process imports.
-
-    Reads one JSON request per line on stdin, ``{"head": ..., "compiled": bool, "calls": n}``, and
-    answers one JSON line, ``{"seconds": s}``, the mean time of ``n`` uniform training steps of the
-    head on its own copy (built, and warmed up ``args.warmup`` steps, at its first request). The
-    first line it writes names the ``tar_rl`` package it imported.
-    """
-    import json
-
-    import tar_rl
-
-    torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
-    batch = make_batch(args.batch, args.slice_len, args.seed).to(device)
-    steps: dict[tuple[str, bool], Callable[[], None]] = {}
-    print(json.dumps({"tar_rl": str(Path(tar_rl.__file__).resolve().parent)}), flush=True)
-    for line in sys.stdin:
-        request = json.loads(line)
-        key = (request["head"], bool(request["compiled"]))
-        if key not in steps:
-            steps[key] = make_step(key[0], "uniform", batch, device, args.amp, args.seed, compiled=key[1])
-            for _ in range(args.warmup):
-                steps[key]()
-        start = time.perf_counter()
-        for _ in range(request["calls"]):
-            steps[key]()
-        print(json.dumps({"seconds": (time.perf_counter() - start) / request["calls"]}), flush=True)
-
-
-class _Worker:
-    """A ``--serve`` process importing the ``tar_rl`` of ``tree`` (a checkout of this repository)."""
+class Worker:
+    """A worker process (:mod:`benchmarks.head_steps`) importing the ``tar_rl`` of ``tree`` (a checkout of this
+    repository)."""
 
     def __init__(self, tree: Path, args: argparse.Namespace):
         import json
@@ -354,7 +225,7 @@ class _Worker:
         flags += [] if args.amp else ["--no-amp"]
         env = {**os.environ, "PYTHONPATH": str(tree)}
         self.proc = subprocess.Popen(
-            [sys.executable, str(Path(__file__).resolve()), "--serve", *flags],
+            [sys.executable, "-P", str(STEPS), *flags],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -377,9 +248,10 @@ class _Worker:
         return float(self._read()["seconds"])
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.stdin.close()
-            self.proc.wait()
+        """End the worker (it exits at the end of its input) and close its pipes."""
+        self.proc.stdin.close()
+        self.proc.wait()
+        self.proc.stdout.close()
 
 
 # variant -> (checkout, compiled attention): the commit measured against, this checkout, this checkout compiled
@@ -407,9 +279,9 @@ def bench_against(heads, args) -> list[dict]:
         subprocess.run(
             ["git", "worktree", "add", "--detach", str(tree), args.against], cwd=REPO, check=True, capture_output=True
         )
-        workers: dict[str, _Worker] = {}
+        workers: dict[str, Worker] = {}
         try:
-            workers = {"against": _Worker(tree, args), "here": _Worker(REPO, args)}
+            workers = {"against": Worker(tree, args), "here": Worker(REPO, args)}
             for head, variant in keys:  # build, compile and warm up every variant before timing any
                 where, compiled = AGAINST_VARIANTS[variant]
                 workers[where].time(head, compiled, 1)
@@ -525,7 +397,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         f"attention), side by side; CSV default {DEFAULT_AGAINST_OUT}",
     )
     p.add_argument("--inner", type=int, default=2, help="--against: training steps per sample (default 2)")
-    p.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)  # a worker of --against
     p.add_argument(
         "--compile-weights",
         default="auto",
@@ -552,9 +423,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     args = parse_args(argv)
-    if args.serve:
-        serve(args)
-        return pd.DataFrame()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     commit = git_commit()

@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    .venv/bin/python benchmarks/bench_objective.py [--quick] [--out PATH] [--threads N]
+    .venv/bin/python -m benchmarks.bench_objective [--quick] [--out PATH] [--threads N]
 
 Two sections, each timed round-robin (every repetition times every variant once, in a fresh
 random order) so that machine noise hits all variants alike; medians and IQRs are reported.
@@ -54,6 +54,7 @@ from tensordict.nn import TensorDictModule
 from torch import Tensor
 from torchrl.objectives import BCLoss
 
+from benchmarks.common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 from tar_rl.io import write_csv_atomic
 from tar_rl.objectives import (
     WEIGHTINGS,
@@ -67,9 +68,6 @@ from tar_rl.objectives import (
     tilted_weights,
     truncate_weights,
 )
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py beside this script
-from common import SUMMARY_COLUMNS, git_commit, interleaved, median_iqr
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "objective.csv"

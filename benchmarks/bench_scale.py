@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    .venv/bin/python benchmarks/bench_scale.py [--quick] [--procs N] [--out PATH]
+    .venv/bin/python -m benchmarks.bench_scale [--quick] [--procs N] [--out PATH]
 
 * ``train``: the default MLP head under ``TARLoss("tar")`` on synthetic ``[B, L] = [64, 16]``
   batches (the default job's global batch), forward + backward + AdamW, one torch thread per
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 from datetime import timedelta
@@ -30,10 +29,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from common import git_commit
-
+from benchmarks.common import git_commit
 from tar_rl.io import write_csv_atomic
 
 B, L = 64, 16

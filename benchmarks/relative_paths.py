@@ -9,7 +9,7 @@ everything but their paths (:func:`tar_rl.runs.portable_summary`; no run's ident
 it was, so run names, results and the tables computed from them do not change. Compressed files, images and
 checkpoints are not rewritten. Running it again changes nothing.
 
-    python benchmarks/relative_paths.py [--check] [PATH ...]
+    python -m benchmarks.relative_paths [--check] [PATH ...]
 
 ``PATH`` limits it to the tracked files under those paths (default: the whole repository). ``--check`` writes
 nothing and exits 1 naming the files that would change. A path it cannot place (outside the repository and in

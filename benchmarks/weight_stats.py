@@ -5,7 +5,7 @@ largest weight in a segment and the mean effective-sample-size fraction
 ``(sum w)^2 / (L sum w^2)``, for two loss patterns: log-normal per-step losses, and one step
 at 5x the loss of fifteen near-equal steps. Used to choose and document the defaults.
 
-    .venv/bin/python benchmarks/weight_stats.py [--segments 20000] [--w-max 3]
+    .venv/bin/python -m benchmarks.weight_stats [--segments 20000] [--w-max 3]
 """
 
 from __future__ import annotations

@@ -428,6 +428,7 @@ class DMControlSuite(Suite):
 
     name = "dm_control"
     max_horizon = MAX_HORIZON
+    longest_demo = MAX_HORIZON  # the experts' episodes run at most this long (expert_episodes)
     action_dim = ACTION_DIM
     sources = ("dm_control",)
     task_names = DMC_TASKS

@@ -34,6 +34,8 @@ class Suite:
     Attributes:
         name: its ``data.suite`` name.
         max_horizon: the largest ``eval.horizon``.
+        longest_demo: the most steps a demonstration it collects can have (its episodes end there), known before
+            collecting; 0: not known.
         images: whether ``data.image_size > 0`` (camera images) is supported.
         action_dim: the action size of the datasets it collects (0: it collects none; a given dataset has its own).
         collects: whether it collects its own demonstrations (False: it evaluates imported ones only).
@@ -46,6 +48,7 @@ class Suite:
 
     name: str = ""
     max_horizon: int = 0
+    longest_demo: int = 0
     images: bool = False
     action_dim: int = 0
     collects: bool = True

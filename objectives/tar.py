@@ -37,10 +37,6 @@ __all__ = ["CAP_MODES", "DEFAULT_EPS", "DEFAULT_GAMMA", "DEFAULT_W_MAX", "TARPar
 DEFAULT_GAMMA = 1.0
 #: Cap on a single step's weight, in units of the segment's mean weight (Eq. 8).
 DEFAULT_W_MAX = 3.0
-#: The smallest cap ``cap="paper"`` renormalises to finite weights: the smallest normal float32 (weights are
-#: computed in float32 at least). Clipping every weight at a smaller ``w_max`` and rescaling to unit mean
-#: multiplies by ``1 / w_max``, which overflows float32.
-MIN_W_MAX = float(torch.finfo(torch.float32).tiny)
 #: Added to the segment's standard deviation before dividing (Eq. 5). Per-step imitation
 #: losses of a trained policy are ~1e-3..1e-1 with spreads of the same order, so 1e-8 leaves
 #: the z-scores untouched there and only matters when a segment's losses are all equal.
@@ -57,21 +53,17 @@ def check_tar_params(*, gamma: float, w_max: float, eps: float, cap: CapMode) ->
     """Raise a ``ValueError`` naming the first of TAR's hyper-parameters that is out of range."""
     if not (isinstance(gamma, (int, float)) and math.isfinite(gamma) and gamma > 0):
         raise ValueError(f"gamma must be a finite number > 0, got {gamma!r}.")
-    if not (isinstance(w_max, (int, float)) and w_max > 0):
-        raise ValueError(f"w_max must be a number > 0 (math.inf for no cap), got {w_max!r}.")
+    if not isinstance(w_max, (int, float)):
+        raise ValueError(f"w_max must be a number >= 1 (math.inf for no cap), got {w_max!r}.")
+    if not w_max >= 1:  # one rule for both caps (NaN included): a cap below the mean weight cannot hold
+        raise ValueError(
+            f"w_max >= 1 is needed (weights of mean 1 cannot all lie below a smaller cap: cap='paper' renormalises "
+            f"them above it, cap='exact' cannot reach it), got {w_max!r}; use a number >= 1 (math.inf for no cap)"
+        )
     if not (isinstance(eps, (int, float)) and math.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be a finite number > 0, got {eps!r}.")
     if cap not in CAP_MODES:
         raise ValueError(f"cap must be one of {list(CAP_MODES)}, got {cap!r}.")
-    if cap == "exact" and w_max < 1:
-        raise ValueError(
-            f"w_max >= 1 is needed by cap='exact' (weights of mean 1 cannot all be below 1), got {w_max!r}."
-        )
-    if w_max < MIN_W_MAX:
-        raise ValueError(
-            f"w_max must be >= {MIN_W_MAX:.4g} (the smallest normal float32: renormalising weights clipped at a "
-            f"smaller cap overflows to inf), got {w_max!r}."
-        )
 
 
 @dataclass(frozen=True)
@@ -81,8 +73,8 @@ class TARParams:
 
     Attributes:
         gamma: softmax temperature on the z-scores (Eq. 6), a finite number ``> 0``. Default ``1.0``.
-        w_max: cap on a step's weight (Eq. 8), ``> 0``; ``math.inf`` disables the cap. ``cap="exact"``
-            needs ``w_max >= 1`` (weights of mean 1 cannot all lie below 1). Default ``3.0``.
+        w_max: cap on a step's weight (Eq. 8), ``>= 1`` with either cap (weights of mean 1 cannot all lie
+            below a smaller cap); ``math.inf`` disables the cap. Default ``3.0``.
         eps: stabiliser added to the standard deviation (Eq. 5), a finite number ``> 0``. Default ``1e-8``.
         cap: ``"paper"`` clips once and renormalises (Eq. 8 as printed: after it a weight may end above
             ``w_max``); ``"exact"`` finds the unit-mean weights ``min(c * w, w_max)`` for which the cap
@@ -213,11 +205,11 @@ def tar_weights(
 
     Keyword Args:
         gamma: softmax temperature, ``> 0``. Default ``1.0``.
-        w_max: cap on a weight, ``> 0`` (``math.inf``: none). Default ``3.0``.
+        w_max: cap on a weight, ``>= 1`` (``math.inf``: none). Default ``3.0``.
         eps: added to the std, ``> 0``. Default ``1e-8``.
         mix: alpha in ``[0, 1]`` (float or 0-d tensor): ``0`` gives uniform weights, ``1`` full TAR.
-        cap: ``"paper"`` (clip once, renormalise; weights may end slightly above ``w_max``)
-            or ``"exact"`` (the cap holds exactly; needs ``w_max >= 1``).
+        cap: ``"paper"`` (clip once, renormalise; weights may end above ``w_max``)
+            or ``"exact"`` (the cap holds exactly).
 
     Returns:
         Weights of the shape and dtype of ``losses``: ``>= 0``, ``0`` on padding, mean ``1``

@@ -136,6 +136,8 @@ def validate(config: dict) -> Job:
     _check_numbers(cfg, suite)
     if given is not None:
         check_slice_len(cfg.data.slice_len, given)
+    else:
+        _check_slice_len_before_collection(cfg.data.slice_len, suite)
     torch_device(cfg.device)
     _check_diagnostics(cfg)
     _check_seeds(cfg, suite, given)
@@ -265,6 +267,21 @@ def check_slice_len(slice_len: int, dataset: DemoDataset) -> None:
         raise ConfigError(
             f"data.slice_len={slice_len} is longer than the longest episode of the dataset {dataset.path} "
             f"({longest} steps), so every segment would be padded; choose data.slice_len between 1 and {longest}"
+        )
+
+
+def _check_slice_len_before_collection(slice_len: int, suite: Suite) -> None:
+    """``data.slice_len`` at most the longest demonstration the suite can collect, checked before collecting (the
+    collected dataset's own longest episode is checked once it is collected: :func:`check_slice_len`).
+
+    Raises:
+        ConfigError: naming the setting, the suite and the allowed range.
+    """
+    longest = suite.longest_demo
+    if longest and slice_len > longest:
+        raise ConfigError(
+            f"data.slice_len={slice_len} is longer than any demonstration the {suite.name} suite collects (at most "
+            f"{longest} steps), so every segment would be padded; choose data.slice_len between 1 and {longest}"
         )
 
 

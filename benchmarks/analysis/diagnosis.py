@@ -80,11 +80,11 @@ from benchmarks.analysis.dims import (
     plot_dims_time,
     read_dims,
 )
-from benchmarks.analysis.figures import plot_weight_phases
 from benchmarks.analysis.pairs import DEFAULT_RUNS, REGIMES, STEP_KEYS, WINDOW, Pairs, load_pairs, regime
-from benchmarks.studies.regimes import BASELINE, TREATMENT
+from benchmarks.studies.protocol import BASELINE, TREATMENT
 from benchmarks.studies.writers import fmt_num, fmt_p
 from tar_rl.report import PHASES, Run, holm
+from tar_rl.report.figures import plot_weight_phases
 from tar_rl.report.phases import label_steps
 
 __all__ = ["TASK_STATS", "Diagnosis", "default_out", "diagnose", "main", "write"]

@@ -19,7 +19,7 @@ import pandas as pd
 
 from benchmarks.analysis.pairs import DEFAULT_RUNS, STEP_KEYS, WINDOW, Pairs, load_pairs
 from benchmarks.analysis.rebuild import checkpoint_parser, rebuild_final
-from benchmarks.studies.regimes import BASELINE, TREATMENT
+from benchmarks.studies.protocol import BASELINE, TREATMENT
 from benchmarks.studies.writers import fmt_num
 from tar_rl.report import Run
 from tar_rl.report.phases import label_steps

@@ -18,7 +18,8 @@ from pathlib import Path
 import yaml
 
 from benchmarks.studies.compare import check_pairs
-from benchmarks.studies.regimes import ARMS, BASELINE, SIZES, TREATMENT
+from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
+from benchmarks.studies.regimes import SIZES
 from tar_rl.report import Run, load_run
 
 __all__ = [
@@ -96,7 +97,7 @@ def regime(label: str) -> Regime:
         return Regime("R3", r3_settings(), (BASELINE, TREATMENT), True)
     for name, head, extra in sizes.chunked_heads:
         if name == label:
-            return Regime(label, _settings((f"policy={head}", *extra, *sizes.chunked)), tuple(ARMS), False)
+            return Regime(label, _settings((f"policy={head}", *extra, *sizes.chunked)), CHUNKED_ARMS, False)
     raise SystemExit(f"diagnosis: no regime {label!r}; the regimes are {', '.join(REGIMES)}")
 
 

@@ -7,8 +7,11 @@ seeds of a regime while another machine trains others. A seed's three runs (``un
 
 Usage (from the repository root, with the study's tree and its packages importable)::
 
-    python -P benchmarks/device/chunked_pairs.py --tree STUDY_TREE --regime r4 --seeds 4,5,6,7 \
-        --out OUT --data-root DATA --jobs 6 [--scale cpu|ci]
+    PYTHONPATH=STUDY_TREE python -P benchmarks/device/chunked_pairs.py --tree STUDY_TREE --regime r4 \
+        --seeds 4,5,6,7 --out OUT --data-root DATA --jobs 6 [--scale cpu|ci]
+
+A script run by its path with ``-P``, not a module of this checkout: ``python -m`` would put this checkout first
+on the import path, and its ``tar_rl`` would shadow the tree's.
 
 The plan's digest is checked against the one recorded when the regime's first run started (``--started``,
 default the tree's ``benchmarks/results/regimes/chunked_started.json``) before anything is trained; a changed
@@ -22,6 +25,22 @@ import json
 import os
 import sys
 from pathlib import Path
+
+
+def study_harness(tree: Path):
+    """The study commit's regime study, its ``benchmarks/regimes.py`` loaded from its file as the module ``regimes``.
+
+    That commit's harness is a folder of scripts that find each other beside themselves (``regimes.py`` imports
+    ``paper_experiments.py``), and its ``tar_rl`` is the tree's, first on ``PYTHONPATH`` (the usage above); the
+    module hands on what this driver uses (``Planner``, ``execute``, ``chunked_specs``, ``plan_digest``, ...).
+    """
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("regimes", tree / "benchmarks" / "regimes.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["regimes"] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def seed_of(spec) -> int:
@@ -60,9 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     out, data_root = Path(args.out).resolve(), Path(args.data_root).resolve()
     started_path = Path(args.started or tree / "benchmarks/results/regimes/chunked_started.json").resolve()
     os.chdir(tree)
-    sys.path.insert(0, str(tree / "benchmarks"))
-    import regimes
-    from paper_experiments import Planner, execute
+    regimes = study_harness(tree)
+    Planner, execute = regimes.Planner, regimes.execute
 
     study = regimes.STUDIES[args.scale]
     seeds = sorted({int(s) for s in args.seeds.split(",") if s.strip()})

@@ -31,13 +31,13 @@ from benchmarks.studies import regimes
 from benchmarks.studies.cli import RESULTS, Context, Study, tables_dir
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_frame, holm_into
 from benchmarks.studies.core import Arm, Planner, Spec, Stage, seed_major
+from benchmarks.studies.protocol import BASELINE, TREATMENT
 from benchmarks.studies.records import provenance, reproduces
 from benchmarks.studies.sweep import execute
 from benchmarks.studies.writers import controls_markdown, fit_markdown, fmt_p, write_outputs
 
 __all__ = ["STUDY", "WEIGHTINGS", "fit_table", "table_markdown"]
 
-BASELINE, TREATMENT = "uniform", "tar"
 WEIGHTINGS = ("tilted", "truncate", "keyframe", "focal", "dro_time")
 
 

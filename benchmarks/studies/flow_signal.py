@@ -37,6 +37,7 @@ import argparse
 import hashlib
 import math
 import subprocess
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -47,9 +48,10 @@ from benchmarks.studies import sweep
 from benchmarks.studies.cli import Context, Study
 from benchmarks.studies.compare import FINAL_SHARE, Comparison, check_pairs, contrasts, finished_runs, stage_fits
 from benchmarks.studies.core import Arm, Scale, Spec, Stage, seed_major
+from benchmarks.studies.protocol import CHUNKED_ARMS
 from benchmarks.studies.records import check_stage_plan, read_json
-from benchmarks.studies.regimes import ARMS, chunked_base
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
+from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.sweep import execute
 from benchmarks.studies.writers import comparison_lines, fit_markdown, fmt_num, group_lines, write_outputs
 
@@ -67,6 +69,10 @@ __all__ = [
 WHO = "flow_signal"
 STARTED_FILE, SELECTION_FILE, NOISE_FILE = "started.json", "selection.json", "pilot_noise.csv"
 TIMES = ("step", "segment")  # the pilot's arms: policy.time_sampling
+#: The columns of the noise command's table with ranking signals (``benchmarks.analysis.noise.SIGNAL_COLUMNS``, a file
+#: this study reads; the analysis sits above the studies, which run it as a command) and what each row measures.
+NOISE_MEASURES = ("signal_r", "top_agree", "weight_r_tar", "weight_r_tar_gentle")
+NOISE_COLUMNS = ("run", "head", "seed", "time_sampling", "signal", "draws", "segments", "steps", *NOISE_MEASURES)
 
 
 @dataclass(frozen=True)
@@ -160,10 +166,8 @@ def select_candidate(weight_r: dict[str, float], success: dict[str, float], marg
 
 
 def candidate_means(table: pd.DataFrame, seeds: Sequence[int]) -> dict[str, dict[str, float]]:
-    """Each candidate's measures (``SIGNAL_MEASURES`` of the noise table, one pass per draw) averaged over the pilot's
-    ``seeds``, from the flow rows of a ``noise`` table; refused where a candidate lacks a seed's row."""
-    from benchmarks.analysis.noise import SIGNAL_MEASURES
-
+    """Each candidate's measures (:data:`NOISE_MEASURES`, one pass per draw) averaged over the pilot's ``seeds``, from
+    the flow rows of a ``noise`` table; refused where a candidate lacks a seed's row."""
     out = {}
     flow = table[(table["head"] == "flow") & (table["draws"] == 1)]
     for c in CANDIDATES:
@@ -172,7 +176,7 @@ def candidate_means(table: pd.DataFrame, seeds: Sequence[int]) -> dict[str, dict
             raise SystemExit(
                 f"{WHO}: the noise table has {c.about} for seeds {sorted(rows['seed'])}, not the pilot's {list(seeds)}"
             )
-        out[c.key] = {m: float(rows[m].mean()) for m in SIGNAL_MEASURES}
+        out[c.key] = {m: float(rows[m].mean()) for m in NOISE_MEASURES}
     return out
 
 
@@ -200,7 +204,7 @@ def r7_specs(ctx: Context, key: str) -> dict[str, list[Spec]] | None:
         return None
     base = (*ctx.sizes.base, *([f"policy.time_sampling={c.time_sampling}"] if c.time_sampling != "step" else []))
     signal = (f"objective.signal={c.signal}",) if c.signal != "loss" else ()
-    arms = tuple(Arm(a, (f"objective={a}", *signal)) for a in ARMS)
+    arms = tuple(Arm(a, (f"objective={a}", *signal)) for a in CHUNKED_ARMS)
     return Stage("r7", f"R5 with {c.about}", base, arms, ctx.sizes.scale.seeds).specs(ctx.planner)
 
 
@@ -234,30 +238,27 @@ def _sha256(path: Path) -> str:
 
 def write_noise_table(ctx: Context, specs: dict[str, list[Spec]], tree: Path | None) -> Path:
     """The noise analysis of the pilot's runs, every candidate (module docstring), into ``<out>/pilot_noise.csv``
-    (and ``.md``): in this process, or with ``tree`` by that checkout's ``python -m benchmarks.analysis noise``."""
+    (and ``.md``): ``python -m benchmarks.analysis noise`` run by this Python from the repository, or with ``tree``
+    by that checkout's ``.venv`` in it."""
+    from benchmarks.studies.records import REPO
+
     runs = seed_major(specs)
     folder = runs[0].run_dir.parent
     names = [s.run_dir.name for s in runs]
     path = ctx.out / NOISE_FILE
     data = Path(ctx.planner.data_root).resolve()
-    if tree is None:
-        from benchmarks.analysis import noise
-
-        table = noise.noise_table(folder, data, (1,), [noise.ALL], names)
-        print(noise.write_noise(table, path), end="")
-        return path
-    command = [str(tree / ".venv" / "bin" / "python"), "-m", "benchmarks.analysis", "noise"]
+    python, where = (sys.executable, REPO) if tree is None else (str(tree / ".venv" / "bin" / "python"), tree)
+    command = [python, "-m", "benchmarks.analysis", "noise"]
     command += ["--from", str(folder.resolve()), "--runs", ",".join(names), "--signals", "all"]
     command += ["--data", str(data), "--out", str(path.resolve())]
     print("$ " + " ".join(command), flush=True)
-    if subprocess.run(command, cwd=tree).returncode != 0:
-        raise SystemExit(f"{WHO}: the noise analysis failed in {tree} (its output above)")
+    if subprocess.run(command, cwd=where).returncode != 0:
+        raise SystemExit(f"{WHO}: the noise analysis failed in {where} (its output above)")
     return path
 
 
 def run_select(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
     """``select`` (module docstring): the pilot's noise table if it is not there yet, else the selection."""
-    from benchmarks.analysis.noise import SIGNAL_COLUMNS
     from tar_rl.io import write_json_atomic
     from tar_rl.report import load_run
 
@@ -286,7 +287,7 @@ def run_select(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
         return []
     table = pd.read_csv(table_path)
     names = {s.run_dir.name for group in specs.values() for s in group}
-    if list(table.columns) != list(SIGNAL_COLUMNS) or set(table["run"]) != names:
+    if list(table.columns) != list(NOISE_COLUMNS) or set(table["run"]) != names:
         raise SystemExit(
             f"{WHO}: {table_path} is not the pilot's noise table (runs {sorted(set(table.get('run', [])))}, the "
             f"pilot's {sorted(names)}); remove it and run `select` again to compute it"

@@ -31,13 +31,12 @@ from dataclasses import dataclass, replace
 
 from benchmarks.studies.cli import Context, Study, names
 from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
+from benchmarks.studies.protocol import BASELINE, EIGHT_TASKS, PAIR, TREATMENT
 from benchmarks.studies.records import provenance
-from benchmarks.studies.regimes import EIGHT_TASKS
 from benchmarks.studies.sweep import execute
 
 __all__ = ["PAPER_FAMILIES", "SIZES", "STUDY", "PaperSizes"]
 
-BASELINE, TREATMENT = "uniform", "tar"
 STAGES = ("protocol", "controls", "budget", "sensitivity")
 REPORTS = ("table", "controls", "critical_windows", "budget", "sensitivity")
 # The paper's five families (ACT, Octo linear, Octo diffusion, a flow head, and the MLP reference).
@@ -155,7 +154,6 @@ SIZES: dict[str, PaperSizes] = {
         fig5_tasks=("reach", "basketball"),
     ),
 }
-PAIR = (Arm.objective(BASELINE), Arm.objective(TREATMENT))
 
 
 # -- The stages ------------------------------------------------------------------------------------------

@@ -12,7 +12,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.analysis.figures import (
+from benchmarks.studies.core import Spec
+from benchmarks.studies.protocol import BASELINE, TREATMENT
+from benchmarks.studies.writers import controls_markdown, table_one_markdown
+from tar_rl.report.figures import (
     plot_critical_windows,
     plot_group_deltas,
     plot_heatmaps,
@@ -20,13 +23,9 @@ from benchmarks.analysis.figures import (
     plot_radar,
     plot_weight_phases,
 )
-from benchmarks.analysis.phases import critical_windows, phase_weight_mass
-from benchmarks.studies.core import Spec
-from benchmarks.studies.writers import controls_markdown, table_one_markdown
+from tar_rl.report.weight_phases import critical_windows, phase_weight_mass
 
 __all__ = [
-    "BASELINE",
-    "TREATMENT",
     "report_budget",
     "report_controls",
     "report_critical_windows",
@@ -34,8 +33,6 @@ __all__ = [
     "report_table",
     "start_output",
 ]
-
-BASELINE, TREATMENT = "uniform", "tar"
 
 
 def _caption(prov: dict) -> str:

@@ -11,8 +11,9 @@ settings):
 * ``r2``: the pairs on the screened tasks (``<out>/r2_started.json`` records the list they use).
 * ``r3``: the pairs on MT50 with 50 demonstrations per task, about 20 passes over the data.
 * ``r4``, ``r5``: the chunked-heads regimes, R3's data, schedule and evaluation with the ``act`` (R4) and
-  ``flow`` (R5) heads, three arms per seed (:data:`ARMS`), seed by seed. The plan's digest is recorded when its
-  first run starts (``<out>/chunked_started.json``); a changed plan is refused by these stages and by ``table``.
+  ``flow`` (R5) heads, three arms per seed (:data:`.protocol.CHUNKED_ARMS`), seed by seed. The plan's digest is
+  recorded when its first run starts (``<out>/chunked_started.json``); a changed plan is refused by these stages and
+  by ``table``.
 
 ``table`` writes the decision table, the per-group rows and Fig. 3 per regime (:mod:`.regimes_table`); ``collect``
 keeps the checkpoint of R1's source, which the R1 runs start from. The ``ci`` scale runs the same stages on two or
@@ -30,31 +31,17 @@ from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.studies.cli import Context, Study, ints
+from benchmarks.studies.cli import Context, Study, ints, tables_dir
 from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
-from benchmarks.studies.records import check_stage_plan, check_started, read_json
+from benchmarks.studies.protocol import CHUNKED_ARMS, EIGHT_TASKS, PAIR, SOURCE_TASKS
+from benchmarks.studies.records import check_stage_plan, check_started, provenance, read_json
+from benchmarks.studies.regimes_table import Planned, write_tables
 from benchmarks.studies.sweep import execute
 
-__all__ = ["ARMS", "SIZES", "STUDY", "RegimeSizes", "chunked_base"]
+__all__ = ["SIZES", "STUDY", "RegimeSizes", "chunked_base"]
 
-BASELINE, TREATMENT = "uniform", "tar"
-# The chunked-heads regimes' arms (objective options): uniform, TAR at tar-rl's defaults, the gentle preset. Their
-# four TAR-vs-uniform comparisons (R4, R5 x tar, tar_gentle) are a second Holm family.
-ARMS = ("uniform", "tar", "tar_gentle")
 CHUNKED_STARTED_FILE = "chunked_started.json"
 SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
-# The eight tasks of the recipe's default job: two per difficulty group.
-EIGHT_TASKS = (
-    "[reach,button-press-topdown,basketball,peg-insert-side,assembly,pick-out-of-hole,stick-pull,pick-place-wall]"
-)
-# MT50 without the default eight tasks, in MetaWorld's alphabetical order: R1's pretraining tasks.
-SOURCE_TASKS = (
-    "bin-picking,box-close,button-press-topdown-wall,button-press,button-press-wall,coffee-button,coffee-pull,"
-    "coffee-push,dial-turn,disassemble,door-close,door-lock,door-open,door-unlock,drawer-close,drawer-open,"
-    "faucet-close,faucet-open,hammer,hand-insert,handle-press-side,handle-press,handle-pull-side,handle-pull,"
-    "lever-pull,peg-unplug-side,pick-place,plate-slide-back-side,plate-slide-back,plate-slide-side,plate-slide,"
-    "push-back,push,push-wall,reach-wall,shelf-place,soccer,stick-push,sweep-into,sweep,window-close,window-open"
-)
 
 
 @dataclass(frozen=True)
@@ -224,7 +211,6 @@ _CI = RegimeSizes(
     ),
 )
 SIZES = {"cpu": _CPU, "ci": _CI}
-PAIR = (Arm.objective(BASELINE), Arm.objective(TREATMENT))
 
 
 # -- The stages ------------------------------------------------------------------------------------------
@@ -257,11 +243,13 @@ def chunked_base(sizes: RegimeSizes, label: str) -> tuple[str, ...]:
 
 
 def chunked_stage(sizes: RegimeSizes, label: str) -> Stage:
-    """The chunked-heads regime ``label`` (``R4``, ``R5``): R3's data with its head, the three :data:`ARMS`."""
+    """The chunked-heads regime ``label`` (``R4``, ``R5``): R3's data with its head, the three
+    :data:`.protocol.CHUNKED_ARMS`."""
     base = chunked_base(sizes, label)
     head = chunked_heads(sizes)[label]
-    arms = tuple(Arm.objective(a) for a in ARMS)
-    return Stage(label.lower(), f"the chunked head {head}: {', '.join(ARMS)}", base, arms, sizes.scale.seeds)
+    arms = tuple(Arm.objective(a) for a in CHUNKED_ARMS)
+    about = f"the chunked head {head}: {', '.join(CHUNKED_ARMS)}"
+    return Stage(label.lower(), about, base, arms, sizes.scale.seeds)
 
 
 def chunked_heads(sizes: RegimeSizes) -> dict[str, str]:
@@ -415,14 +403,22 @@ def run(ctx: Context, stage: str) -> list[Spec]:
     return execute(scale, seed_major(specs), ctx.jobs, dry, logs)
 
 
+def planned(ctx: Context) -> Planned:
+    """The planned runs the tables read; a chunked-heads plan that changed after its runs started is refused."""
+    heads = chunked_heads(ctx.sizes)
+    chunked = {}
+    for label, head in heads.items():
+        specs = chunked_stage(ctx.sizes, label).specs(ctx.planner)
+        check_plan_started(ctx.out, label, specs, record=False)
+        chunked[label] = (head, specs)
+    paired = {label: specs for label, specs in plan(ctx).items() if label not in heads}
+    return Planned(paired, chunked, ctx.out / SCREENING_FILE, screening(ctx.out), ctx.out)
+
+
 def table(ctx: Context) -> None:
     """The decision table, per-group rows and Fig. 3 (:func:`.regimes_table.write_tables`)."""
-    from benchmarks.studies.cli import tables_dir
-    from benchmarks.studies.records import provenance
-    from benchmarks.studies.regimes_table import write_tables
-
     prov = provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
-    print(write_tables(ctx, prov, tables_dir(ctx), complete=ctx.args.complete))
+    print(write_tables(planned(ctx), prov, tables_dir(ctx), complete=ctx.args.complete))
 
 
 def _options(p: argparse.ArgumentParser) -> None:

@@ -14,30 +14,21 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.studies.cli import Context
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_means, fit_summary, holm_into
-from benchmarks.studies.core import seed_major
-from benchmarks.studies.regimes import (
-    ARMS,
-    BASELINE,
-    SCREENING_FILE,
-    TREATMENT,
-    check_plan_started,
-    chunked_heads,
-    chunked_stage,
-    plan,
-    screening,
-)
+from benchmarks.studies.core import Spec, seed_major
+from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
 from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
 
 __all__ = [
     "PAIRED_FIGURE",
     "PAIRED_SOURCES",
     "PRIMARY",
+    "Planned",
     "chunked_paired_rows",
     "decision_markdown",
     "regime_rows",
@@ -51,6 +42,32 @@ PAIRED_FIGURE = "fig_paired.png"
 #: their folders under the study's, and the file of per-seed differences their tables write there (``label``,
 #: ``group``, ``seed``, ``delta``).
 R6_FOLDER, R7_FOLDER, PAIRED_CSV = "r6", "r7", "paired.csv"
+
+
+@dataclass(frozen=True)
+class Planned:
+    """The regime study's planned runs, as its tables read them (the study plans them: :mod:`.regimes`).
+
+    Attributes:
+        paired: the paired regimes' runs (R1, R1-10, R2, R3) by regime, those planned so far.
+        chunked: ``(head, runs by arm)`` by chunked-heads regime (R4, R5), each plan checked unchanged since its
+            runs started.
+        screening: R2's screening record (``screening.json``).
+        screened: the task list it holds (``None`` before the screening).
+        out: the study's folder (``<out>``), under which the paired figure's other sources write their rows
+            (:data:`PAIRED_SOURCES`).
+    """
+
+    paired: dict[str, list[Spec]]
+    chunked: dict[str, tuple[str, dict[str, list[Spec]]]]
+    screening: Path
+    screened: list[str] | None
+    out: Path
+
+    @property
+    def heads(self) -> dict[str, str]:
+        """The chunked-heads regimes' heads by regime (``R4``: ``act``), in the plan's order."""
+        return {label: head for label, (head, _) in self.chunked.items()}
 
 
 def regime_rows(label: str, runs: Sequence) -> tuple[dict, pd.DataFrame]:
@@ -127,24 +144,22 @@ def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[
     return "\n".join(out) + "\n"
 
 
-def chunked_loaded(ctx: Context, label: str, complete: bool) -> tuple[dict, list[str]]:
-    """The finished runs of a chunked-heads regime per arm, over the seeds every arm has finished, and the
-    names of its runs not finished.
+def chunked_loaded(label: str, specs: dict[str, list[Spec]], complete: bool) -> tuple[dict, list[str]]:
+    """The finished runs of a chunked-heads regime per arm (``specs``: its planned runs by arm), over the seeds
+    every arm has finished, and the names of its runs not finished.
 
     Raises:
-        SystemExit: the plan changed after its runs started; with ``complete``, an arm misses a seed (the
-            runs named); a seed's runs trained at different commits or machines (:func:`check_pairs`).
+        SystemExit: with ``complete``, an arm misses a seed (the runs named); a seed's runs trained at different
+            commits or machines (:func:`check_pairs`).
     """
     from tar_rl.report import load_run
 
-    specs = chunked_stage(ctx.sizes, label).specs(ctx.planner)
-    check_plan_started(ctx.out, label, specs, record=False)
     missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
     if complete and missing:
         raise SystemExit(f"regimes: {label} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
     done = {arm: {s.config["seed"]: s for s in group if s.finished} for arm, group in specs.items()}
     seeds = sorted(set.intersection(*(set(d) for d in done.values())))
-    loaded = {arm: [load_run(done[arm][seed].run_dir) for seed in seeds] for arm in ARMS}
+    loaded = {arm: [load_run(done[arm][seed].run_dir) for seed in seeds] for arm in CHUNKED_ARMS}
     if seeds:
         check_pairs([run for group in loaded.values() for run in group])
     return loaded, missing
@@ -162,7 +177,7 @@ def by_device(label: str, loaded: dict) -> list[dict]:
     device = [(r.summary.get("machine") or {}).get("device", "unknown") for r in loaded[BASELINE]]
     uniform = [overall_success(r) for r in loaded[BASELINE]]
     rows = []
-    for arm in ARMS[1:]:
+    for arm in CHUNKED_ARMS[1:]:
         deltas = [overall_success(r) - u for r, u in zip(loaded[arm], uniform)]
         for kind in sorted(set(device)):
             mine = [d for d, k in zip(deltas, device) if k == kind]
@@ -196,24 +211,26 @@ def by_device_markdown(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def chunked_tables(ctx: Context, complete: bool) -> tuple[list, list, list, list, dict, list, dict]:
+def chunked_tables(
+    chunked: dict[str, tuple[str, dict[str, list[Spec]]]], complete: bool
+) -> tuple[list, list, list, list, dict, list, dict]:
     """Decision rows (one per regime and TAR arm, Holm over all of them), per-group rows, fit rows, the
     figure's compare rows, the missing runs, the per-device rows and the runs per arm (by regime) of the
-    chunked-heads regimes."""
+    chunked-heads regimes (``chunked``: :attr:`Planned.chunked`)."""
     from tar_rl.report import compare
 
     rows, groups, fits, figure, missing, devices, by_regime = [], [], [], [], {}, [], {}
-    for label, head in chunked_heads(ctx.sizes).items():
-        loaded, missing[label] = chunked_loaded(ctx, label, complete)
+    for label, (head, specs) in chunked.items():
+        loaded, missing[label] = chunked_loaded(label, specs, complete)
         if not loaded[BASELINE]:
             continue
         by_regime[label] = loaded
         devices += by_device(label, loaded)
-        for arm in ARMS:
+        for arm in CHUNKED_ARMS:
             fits.append({"regime": label, "head": head, "arm": arm, **fit_summary(loaded[arm])})
             table = compare(loaded[arm], file=io.StringIO())
             figure.append(table.assign(policy=f"{label} {head}", objective=arm))
-        for arm in ARMS[1:]:
+        for arm in CHUNKED_ARMS[1:]:
             row, group = regime_rows(f"{label} {arm}", [*loaded[BASELINE], *loaded[arm]])
             rows.append(row)
             groups.append(group)
@@ -235,23 +252,20 @@ def chunked_markdown(fits: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def pair_tables(ctx: Context) -> tuple[list, list, list, dict]:
+def pair_tables(planned: Planned) -> tuple[list, list, list, dict]:
     """The decision rows (Holm over :data:`PRIMARY`), per-group rows, the figure's compare rows and the missing
     runs of the paired regimes (R1-R3)."""
     from tar_rl.report import compare, load_run
 
     rows, groups, figure, missing = [], [], [], {}
-    screened = screening(ctx.out)
-    chunked = set(chunked_heads(ctx.sizes))
-    for label, specs in plan(ctx).items():
-        if label in chunked:
-            continue
+    screened = planned.screened
+    for label, specs in planned.paired.items():
         missing[label] = [s.run_dir.name for s in specs if not s.finished]
         runs = [load_run(s.run_dir) for s in specs if s.finished]
         if label == "R2" and screened is not None:
             for run in runs:
                 if list(run.config["data"]["tasks"]) != list(screened):
-                    raise SystemExit(f"regimes: {run.name} trained on tasks other than {ctx.out / SCREENING_FILE}'s")
+                    raise SystemExit(f"regimes: {run.name} trained on tasks other than {planned.screening}'s")
         seeds = {r.seed for r in runs if r.objective == BASELINE} & {r.seed for r in runs if r.objective == TREATMENT}
         runs = [r for r in runs if r.seed in seeds]
         if not seeds:
@@ -280,7 +294,7 @@ def chunked_paired_rows(by_regime: dict[str, dict], heads: dict[str, str]) -> li
     rows = []
     for label, loaded in by_regime.items():
         uniform = {r.seed: _overall_success(r) for r in loaded[BASELINE]}
-        for arm in ARMS[1:]:
+        for arm in CHUNKED_ARMS[1:]:
             for run in loaded[arm]:
                 delta = _overall_success(run) - uniform[run.seed]
                 rows.append(
@@ -289,34 +303,35 @@ def chunked_paired_rows(by_regime: dict[str, dict], heads: dict[str, str]) -> li
     return rows
 
 
-def _r6_source(ctx: Context, by_regime: dict[str, dict]) -> list[dict]:
-    """R6's per-seed differences, as the ``why_act`` study's table writes them (``r6/paired.csv``; it pairs R6's
-    runs with R4's), or ``[]`` before it has."""
-    path = ctx.out / R6_FOLDER / PAIRED_CSV
+def _r6_source(planned: Planned, by_regime: dict[str, dict]) -> list[dict]:
+    """R6's per-seed differences, as the ``why_act`` study's table writes them (``r6/paired.csv`` under
+    :attr:`Planned.out`; it pairs R6's runs with R4's), or ``[]`` before it has."""
+    path = planned.out / R6_FOLDER / PAIRED_CSV
     return pd.read_csv(path).to_dict("records") if path.is_file() else []
 
 
-def _r7_source(ctx: Context, by_regime: dict[str, dict]) -> list[dict]:
+def _r7_source(planned: Planned, by_regime: dict[str, dict]) -> list[dict]:
     """R7's per-seed differences (each TAR arm minus uniform with the selected ranking signal), as the
-    ``flow_signal`` study's table writes them (``r7/paired.csv``), or ``[]`` before it has."""
-    path = ctx.out / R7_FOLDER / PAIRED_CSV
+    ``flow_signal`` study's table writes them (``r7/paired.csv`` under :attr:`Planned.out`), or ``[]`` before it
+    has."""
+    path = planned.out / R7_FOLDER / PAIRED_CSV
     return pd.read_csv(path).to_dict("records") if path.is_file() else []
 
 
-#: The paired figure's rows beyond R4 and R5, each ``(ctx, the chunked regimes' runs per arm by regime) -> rows``
-#: (``label``, ``group``, ``seed``, ``delta``, as :func:`chunked_paired_rows`'s), drawn below them in this order: R6's
-#: controls and R7's arms where their runs are present.
-PAIRED_SOURCES: tuple[Callable[[Context, dict], list[dict]], ...] = (_r6_source, _r7_source)
+#: The paired figure's rows beyond R4 and R5, each ``(the planned runs, the chunked regimes' runs per arm by regime)
+#: -> rows`` (``label``, ``group``, ``seed``, ``delta``, as :func:`chunked_paired_rows`'s), drawn below them in this
+#: order: R6's controls and R7's arms where their runs are present.
+PAIRED_SOURCES: tuple[Callable[[Planned, dict], list[dict]], ...] = (_r6_source, _r7_source)
 
 
-def write_paired_figure(ctx: Context, by_regime: dict[str, dict], dest: Path) -> Path | None:
+def write_paired_figure(planned: Planned, by_regime: dict[str, dict], dest: Path) -> Path | None:
     """``fig_paired.png``: each chunked arm minus uniform per seed, with the mean and its 95% t CI
     (:func:`tar_rl.report.plot_paired_deltas`), R4 and R5 then :data:`PAIRED_SOURCES`; None without rows."""
     from tar_rl.report import plot_paired_deltas
 
-    rows = chunked_paired_rows(by_regime, chunked_heads(ctx.sizes))
+    rows = chunked_paired_rows(by_regime, planned.heads)
     for source in PAIRED_SOURCES:
-        rows += source(ctx, by_regime)
+        rows += source(planned, by_regime)
     if not rows:
         return None
     regimes = ", ".join(dict.fromkeys(r["group"] for r in rows))
@@ -329,16 +344,16 @@ def write_paired_figure(ctx: Context, by_regime: dict[str, dict], dest: Path) ->
     )
 
 
-def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -> str:
+def write_tables(planned: Planned, prov: dict, dest: Path, complete: bool = False) -> str:
     """The decision table (markdown + CSV), per-group CSV, Fig. 3 per regime and per chunked head, and the chunked
-    heads' paired differences (:func:`write_paired_figure`) from the finished runs of ``ctx.out``, written into
+    heads' paired differences (:func:`write_paired_figure`) from the finished runs of ``planned``, written into
     ``dest``; returns the markdown.
 
     ``complete``: refuse a chunked-heads regime with a run of its plan missing (the final table)."""
     from tar_rl.report import plot_success_vs_neps
 
-    rows, groups, figure, missing = pair_tables(ctx)
-    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices, c_loaded = chunked_tables(ctx, complete)
+    rows, groups, figure, missing = pair_tables(planned)
+    c_rows, c_groups, c_fits, c_figure, c_missing, c_devices, c_loaded = chunked_tables(planned.chunked, complete)
     rows, groups = rows + c_rows, groups + c_groups
     missing.update(c_missing)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
@@ -354,5 +369,5 @@ def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -
         fig_table = pd.concat(c_figure, ignore_index=True)
         caption = "chunked heads (R4 act, R5 flow): uniform -> tar, tar_gentle"
         plot_success_vs_neps(fig_table, dest / "fig3_chunked.png", caption=caption)
-    write_paired_figure(ctx, c_loaded, dest)
+    write_paired_figure(planned, c_loaded, dest)
     return md

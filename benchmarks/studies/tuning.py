@@ -35,13 +35,13 @@ from benchmarks.studies import regimes
 from benchmarks.studies.cli import RESULTS, Context, Study, tables_dir
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_summary, holm_into, paired
 from benchmarks.studies.core import Arm, Scale, Spec, Stage, seed_major
+from benchmarks.studies.protocol import BASELINE
 from benchmarks.studies.records import provenance, read_json, reproduces
 from benchmarks.studies.sweep import execute
 from benchmarks.studies.writers import fit_markdown, fmt_p, write_outputs
 
 __all__ = ["SIZES", "STUDY", "Tuning", "select", "settings"]
 
-BASELINE = "uniform"
 VARIANTS = ("tar_arm", "tar_dimnorm")  # in the order the plan lists them (a tie goes to the first)
 DEFAULTS = {"gamma": 1.0, "cap": "paper", "w_max": 3.0}  # tar-rl's defaults (the paper publishes no values)
 TIE = 0.25  # points of success within which two settings tie (the plan's rule)

@@ -4,7 +4,9 @@ format of :mod:`tar_rl.data`.
 ``build_dataset(root, tasks, n_demos, ...)`` collects the demonstrations and writes them as the folder
 ``root/metaworld-demos-<key>``. The key is a hash of everything that determines the content, so a second
 ``build_dataset`` with the same settings loads the existing folder; a folder that fails the format's
-checks is removed and built again.
+checks is removed and built again. Demonstrations collected for a folder the disk has no room for are kept,
+as collected, in ``root/.metaworld-demos-<key>.collected.npz`` where they fit: the next build of that
+folder writes them instead of collecting again.
 
 MetaWorld specifics of the stored steps: ``observation`` [39], ``action`` [4] (the expert action clipped
 to [-1, 1]; ``action_raw`` unclipped), ``("next", "terminated")`` on the success step that ends every
@@ -19,6 +21,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+import zipfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -39,6 +42,8 @@ from tar_rl.data import (
     steps_tensordict,
     write_dataset,
 )
+from tar_rl.errors import DiskFullError
+from tar_rl.io import atomic_write, require_free_space
 
 from . import demos as _demos
 from . import tasks as _tasks
@@ -46,6 +51,7 @@ from . import tasks as _tasks
 __all__ = ["NAME_PREFIX", "build_dataset", "check_disjoint"]
 
 NAME_PREFIX = "metaworld-demos-"
+KEPT_SUFFIX = ".collected.npz"
 ACTION_TARGET = "expert action clipped to the action space [-1, 1]; the unclipped action is action_raw"
 
 
@@ -240,21 +246,65 @@ def build_dataset(
             print(f"dataset {final} is incomplete or corrupt ({err}); removing it and building it again")
             shutil.rmtree(final)
 
-    start = time.perf_counter()
-    results = _demos.collect(
-        names,
-        n_demos,
-        seed=seed,
-        workers=workers,
-        max_attempts=max_attempts,
-        image_size=image_size,
-        progress=progress,
-        verbose=verbose,
-    )
-    secs = time.perf_counter() - start
+    kept = root / f".{name}{KEPT_SUFFIX}"
+    found_kept = _read_kept(kept, key)
+    if found_kept is not None:
+        results, secs = found_kept
+        print(f"writing the demonstrations collected earlier for {final}, kept in {kept}")
+    else:
+        start = time.perf_counter()
+        results = _demos.collect(
+            names,
+            n_demos,
+            seed=seed,
+            workers=workers,
+            max_attempts=max_attempts,
+            image_size=image_size,
+            progress=progress,
+            verbose=verbose,
+        )
+        secs = time.perf_counter() - start
     data = _to_tensordict(results, chunk_horizon, history)
+    try:
+        written = write_dataset(root, name, data, _metadata(settings, key, results, data, secs))
+    except DiskFullError as err:
+        raise _keep(kept, key, results, secs, err) from None
+    kept.unlink(missing_ok=True)
+    return load_dataset(written)
 
-    return load_dataset(write_dataset(root, name, data, _metadata(settings, key, results, data, secs)))
+
+def _keep(kept: Path, key: str, results: dict[str, _demos.TaskDemos], secs: float, err: DiskFullError) -> DiskFullError:
+    """Keep the collected ``results`` in ``kept`` when the dataset found no room (``err``); the error to raise,
+    naming the kept file, or ``err`` itself when there is no room for that either."""
+    if not kept.exists():
+        arrays = {**_demos.demos_arrays(results), "cache_key": np.array(key), "seconds": np.array(secs)}
+        try:
+            require_free_space(kept.parent, sum(a.nbytes for a in arrays.values()), kept)
+            atomic_write(kept, lambda f: np.savez(f, **arrays), binary=True)
+        except DiskFullError:
+            return err
+    n = sum(r.kept for r in results.values())
+    note = f"the {n} collected demonstrations are kept in {kept}, which the same command writes instead of collecting"
+    return DiskFullError(err.path, OSError(err.errno, err.strerror), f"{err.detail}; {note}" if err.detail else note)
+
+
+def _read_kept(kept: Path, key: str) -> tuple[dict[str, _demos.TaskDemos], float] | None:
+    """The demonstrations :func:`_keep` kept for the dataset ``key`` and their collection's seconds; ``None`` when
+    there are none (an unreadable file, or one of other settings, is removed)."""
+    if not kept.is_file():
+        return None
+    try:
+        if not zipfile.is_zipfile(kept):
+            raise ValueError("not an npz archive")
+        with np.load(kept, allow_pickle=False) as arrays:
+            if str(arrays["cache_key"]) == key:
+                return _demos.demos_from_arrays(arrays), float(arrays["seconds"])
+            why = "it holds demonstrations of other settings"
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as err:
+        why = f"it cannot be read ({type(err).__name__}: {err})"
+    print(f"removing {kept}: {why}; collecting again")
+    kept.unlink()
+    return None
 
 
 def check_disjoint(dataset: DemoDataset, eval_seed: int, n_rollouts: int) -> None:

@@ -17,11 +17,13 @@ collection runs at nearly the bare expert-rollout rate.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import sys
 import time
-from collections.abc import Iterable
+import warnings
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,7 +31,17 @@ import numpy as np
 from tar_rl.collectors.metaworld import tasks as _tasks
 from tar_rl.errors import children_ignore_sigint
 
-__all__ = ["ACTION_DIM", "HORIZON", "OBS_DIM", "TaskDemos", "collect", "collect_task", "default_max_attempts"]
+__all__ = [
+    "ACTION_DIM",
+    "HORIZON",
+    "OBS_DIM",
+    "TaskDemos",
+    "collect",
+    "collect_task",
+    "default_max_attempts",
+    "demos_arrays",
+    "demos_from_arrays",
+]
 
 HORIZON = 500  # MetaWorld v3's episode length: step 500 returns truncated=True, step 501 raises
 OBS_DIM = 39
@@ -102,6 +114,53 @@ class TaskDemos:
         return len(self.step)
 
 
+_ARRAYS = (
+    "observation",
+    "action_raw",
+    "action",
+    "next_observation",
+    "reward",
+    "terminated",
+    "truncated",
+    "step",
+    "lengths",
+    "variation_index",
+    "variation_seed",
+)
+_NUMBERS = {"seed": int, "attempts": int, "rejected": int, "env_steps": int, "seconds": float}
+
+
+def demos_arrays(results: Mapping[str, TaskDemos]) -> dict[str, np.ndarray]:
+    """The demonstrations of every task as named arrays (what ``np.savez`` stores), in task order; read back by
+    :func:`demos_from_arrays`."""
+    out = {"tasks": np.array(list(results))}
+    for i, r in enumerate(results.values()):
+        out |= {f"t{i}_{name}": getattr(r, name) for name in _ARRAYS}
+        out |= {f"t{i}_{name}": np.asarray(getattr(r, name)) for name in _NUMBERS}
+        out[f"t{i}_rejected_index"] = np.asarray(r.rejected_index, dtype=np.int64)
+        if r.pixels is not None:
+            out[f"t{i}_pixels"] = r.pixels
+    return out
+
+
+def demos_from_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, TaskDemos]:
+    """The demonstrations :func:`demos_arrays` stored, by task.
+
+    Raises:
+        KeyError: an array is missing.
+    """
+    out = {}
+    for i, task in enumerate(str(t) for t in arrays["tasks"]):
+        out[task] = TaskDemos(
+            task=task,
+            **{name: arrays[f"t{i}_{name}"] for name in _ARRAYS},
+            **{name: kind(arrays[f"t{i}_{name}"]) for name, kind in _NUMBERS.items()},
+            rejected_index=arrays[f"t{i}_rejected_index"].tolist(),
+            pixels=arrays[f"t{i}_pixels"] if f"t{i}_pixels" in arrays else None,
+        )
+    return out
+
+
 def _check_positive_int(name: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise ValueError(f"{name} must be a positive integer, got {value!r}.")
@@ -143,6 +202,15 @@ def _rollout(env, policy, buf: dict[str, np.ndarray], render=None) -> tuple[int,
         if render is not None:
             pix_buf[t + 1] = render(env)  # the image of the next step's observation
     return HORIZON, False  # unreachable: MetaWorld truncates at step 500
+
+
+@contextlib.contextmanager
+def _clipped_actions_unannounced() -> Iterator[None]:
+    """MetaWorld's experts warn on every action outside [-1, 1] (``Constant(s) may be too high``); the actions are
+    clipped here, so inside this block the warning is not shown (in this process and in spawned workers alike)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
+        yield
 
 
 def _task_args(task, n_demos, seed, max_attempts) -> tuple[str, int, int, int]:
@@ -210,7 +278,8 @@ def collect_task(
     env_steps = 0
     while len(kept_index) < n_demos and j < max_attempts:
         env.set_task(_tasks.variation(task, seed, j))
-        length, ok = _rollout(env, policy, buf, render)
+        with _clipped_actions_unannounced():
+            length, ok = _rollout(env, policy, buf, render)
         env_steps += length
         if ok and render is not None:
             pixels.append(buf["pix"][:length].copy())
@@ -266,17 +335,12 @@ def collect_task(
 
 
 def _worker_init() -> None:
-    import warnings
-
     # One intra-op thread per worker. Collection itself never uses torch, so a worker does not
     # import it (~2 s); if something loads it later, OMP_NUM_THREADS makes it start with one.
     os.environ["OMP_NUM_THREADS"] = "1"
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)
-    # MetaWorld's experts warn on every unclipped action; the actions are clipped here, so the
-    # warning is noise (spawned workers do not inherit the parent's warning filters).
-    warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
 
 
 def _job(args: tuple[str, int, int, int | None, int]) -> TaskDemos:

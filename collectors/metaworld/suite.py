@@ -11,7 +11,7 @@ from tar_rl.data import DemoDataset
 from ..suite import Suite
 from . import tasks as mw_tasks
 from .dataset import build_dataset, check_disjoint
-from .demos import ACTION_DIM
+from .demos import ACTION_DIM, HORIZON
 from .evaluate import MAX_HORIZON, RolloutPool, evaluate
 
 __all__ = ["MetaWorldSuite"]
@@ -22,6 +22,7 @@ class MetaWorldSuite(Suite):
 
     name = "metaworld"
     max_horizon = MAX_HORIZON
+    longest_demo = HORIZON
     images = True
     action_dim = ACTION_DIM
     sources = ("metaworld",)

@@ -8,7 +8,7 @@ import math
 
 import pytest
 import torch
-from conftest import ACTION_DIM, ENV_DIM, EPISODE_LENGTHS, STATE_DIM
+from conftest import ACTION_DIM, ENV_DIM, EPISODE_LENGTHS, IMAGE_SIZE, STATE_DIM
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.act.modeling_act import ACTPolicy
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
@@ -34,6 +34,16 @@ def act_config(**tar) -> ACTTARConfig:
     )  # fmt: skip
 
 
+def act_image_config(**tar) -> ACTTARConfig:
+    """ACT reading a camera and the state (its ResNet-18 backbone, untrained, on 32-pixel images)."""
+    config = act_config(**tar)
+    config.input_features = {
+        "observation.state": FEATURES["observation.state"],
+        "observation.images.cam": PolicyFeature(type=FeatureType.VISUAL, shape=(3, IMAGE_SIZE, IMAGE_SIZE)),
+    }
+    return config
+
+
 def diffusion_config(**tar) -> DiffusionTARConfig:
     return DiffusionTARConfig(
         device="cpu", input_features=dict(FEATURES), output_features=dict(ACTION), n_obs_steps=2, horizon=8,
@@ -47,12 +57,13 @@ def _batch(config, size: int, seed: int = 0, pad_from: int | None = None) -> dic
     generator = torch.Generator().manual_seed(seed)
     obs, act = config.observation_delta_indices, config.action_delta_indices
     frames = () if obs is None else (len(obs),)
-    batch = {key: torch.randn(size, *frames, *ft.shape, generator=generator) for key, ft in FEATURES.items()}
+    features = config.input_features
+    batch = {key: torch.randn(size, *frames, *ft.shape, generator=generator) for key, ft in features.items()}
     batch["action"] = torch.randn(size, len(act), ACTION_DIM, generator=generator)
     batch["action_is_pad"] = torch.zeros(size, len(act), dtype=torch.bool)
     if pad_from is not None:
         batch["action_is_pad"][:, pad_from:] = True
-    for key in FEATURES:
+    for key in features:
         if obs is not None:
             batch[f"{key}_is_pad"] = torch.zeros(size, len(obs), dtype=torch.bool)
     return batch
@@ -80,10 +91,10 @@ def test_tar_settings_have_the_names_and_defaults_of_tar_rls_objective():
     [
         ("gamma", 0.0, "policy.tar: gamma must be a finite number > 0"),
         ("gamma", math.inf, "policy.tar: gamma must be a finite number > 0"),
-        ("w_max", -1.0, "policy.tar: w_max must be a number > 0"),
+        ("w_max", "3", "policy.tar: w_max must be a number >= 1"),
         ("eps", 0.0, "policy.tar: eps must be a finite number > 0"),
         ("cap", "soft", "policy.tar: cap must be one of"),
-        ("w_max", 0.5, None),  # allowed with the paper's cap
+        ("w_max", 0.5, "policy.tar: w_max >= 1 is needed .*cap='paper' renormalises them above it"),
         ("start", -1, "policy.tar: schedule start must be an int >= 0"),
         ("ramp", 2.5, "policy.tar: schedule ramp must be an int >= 0"),
         ("shape", "step", "policy.tar: schedule shape must be one of"),
@@ -92,11 +103,6 @@ def test_tar_settings_have_the_names_and_defaults_of_tar_rls_objective():
     ],
 )
 def test_tar_fields_out_of_range_are_refused_with_their_name(field, value, message):
-    if message is None:
-        TARSettings(**{field: value}).validate()
-        with pytest.raises(ValueError, match="w_max >= 1 is needed by cap='exact'"):
-            TARSettings(**{field: value, "cap": "exact"}).validate()
-        return
     with pytest.raises(ValueError, match=message):
         TARSettings(**{field: value}).validate()
     config = act_config(**{field: value})  # the command line's parser builds it; the dataset and the policy refuse it
@@ -107,6 +113,24 @@ def test_tar_fields_out_of_range_are_refused_with_their_name(field, value, messa
     ):
         with pytest.raises(ValueError, match=message):
             read()
+
+
+@pytest.mark.parametrize("cap", ["paper", "exact"])
+@pytest.mark.parametrize("w_max", [0.5, 0.999, 1.0, 3.0, math.inf])
+def test_w_max_follows_tar_rls_one_rule_with_either_cap(w_max, cap):
+    """The plugin refuses what tar-rl's ``TARParams`` refuses, with its message: ``w_max`` below 1, either cap."""
+    from tar_rl.objectives.tar import TARParams
+
+    try:
+        TARParams(w_max=w_max, cap=cap)
+    except ValueError as error:
+        assert w_max < 1
+        with pytest.raises(ValueError) as ours:
+            TARSettings(w_max=w_max, cap=cap).validate()
+        assert str(ours.value) == f"policy.tar: {error}"
+    else:
+        assert w_max >= 1
+        TARSettings(w_max=w_max, cap=cap).validate()
 
 
 def test_unknown_base_policies_and_pi0_fast_are_refused_with_the_reason():
@@ -154,8 +178,12 @@ def test_a_segment_longer_than_every_episode_is_refused_before_training(state_da
 
 @pytest.mark.parametrize(
     "make_config, tar_class, base_class",
-    [(act_config, ACTTARPolicy, ACTPolicy), (diffusion_config, DiffusionTARPolicy, DiffusionPolicy)],
-    ids=["act", "diffusion"],
+    [
+        (act_config, ACTTARPolicy, ACTPolicy),
+        (act_image_config, ACTTARPolicy, ACTPolicy),
+        (diffusion_config, DiffusionTARPolicy, DiffusionPolicy),
+    ],
+    ids=["act", "act-image", "diffusion"],
 )
 def test_with_the_schedule_off_the_loss_is_the_base_policys_own(make_config, tar_class, base_class):
     """Before ``start`` TAR's weights are uniform: the loss of one chunk (padding included) is the base policy's
@@ -228,3 +256,83 @@ def test_the_schedule_counts_training_forwards_and_ramps_tar_in():
     assert mixes == [0.0, 0.0, 0.5, 1.0]
     assert int(policy.tar_step) == 4
     assert "tar_step" in policy.state_dict()
+
+
+# -- The log: comparable with the base policy's ----------------------------------------------------
+
+
+def _folded_by_hand(batch, size: int, slice_len: int) -> dict[str, torch.Tensor]:
+    """ACT's batch of single steps from a segment batch, item-major and step-minor (``n = i * L + t``), built here
+    with loops: observation ``t``, actions ``t .. t + CHUNK - 1``."""
+    steps = [(i, t) for i in range(size) for t in range(slice_len)]
+    folded = {key: torch.stack([batch[key][i, t] for i, t in steps]) for key in FEATURES}
+    for key in ("action", "action_is_pad"):
+        folded[key] = torch.stack([batch[key][i, t : t + CHUNK] for i, t in steps])
+    return folded
+
+
+@pytest.mark.parametrize("start", [10, 0], ids=["tar-off", "tar-on"])
+def test_the_logged_uniform_loss_and_acts_terms_are_acts_own(start):
+    """On the same observation-chunk pairs and random draws, ``tar_uniform_loss`` is ACT's ``loss`` and ``l1_loss``,
+    ``kld_loss`` are ACT's own terms, whether TAR weighs the loss or not; with TAR on the optimised loss differs."""
+    slice_len, size = 3, 2
+    config = act_config(slice_len=slice_len, start=start)
+    torch.manual_seed(0)
+    policy = ACTTARPolicy(config)
+    base = ACTPolicy(config)
+    base.load_state_dict({k: v for k, v in policy.state_dict().items() if k != "tar_step"})
+    for pad_from in (None, 5):  # 5: step 2's last chunk entry is padding (its current action is real)
+        batch = _batch(config, size, seed=3, pad_from=pad_from)
+        torch.manual_seed(1)
+        loss, info = policy.forward(batch)
+        torch.manual_seed(1)
+        theirs, terms = base.forward(_folded_by_hand(batch, size, slice_len))
+        assert info["l1_loss"] == pytest.approx(terms["l1_loss"], rel=1e-6)
+        assert info["kld_loss"] == pytest.approx(terms["kld_loss"], rel=1e-6)
+        if pad_from is None:  # with padding the plugin averages per step first (docs/lerobot.md)
+            assert info["tar_uniform_loss"] == pytest.approx(theirs.item(), rel=1e-6)
+            if start == 0:
+                assert abs(loss.item() - theirs.item()) > 1e-4  # the weighted loss is another number
+            else:
+                assert loss.item() == pytest.approx(theirs.item(), rel=1e-6)
+
+
+def test_in_evaluation_mode_the_loss_is_the_base_policys_uniform_one():
+    """LeRobot's ``eval_loss`` calls the forward in evaluation mode: the uniform loss, ACT's own, with TAR on."""
+    config = act_config(slice_len=3, start=0)
+    torch.manual_seed(0)
+    policy = ACTTARPolicy(config).eval()
+    base = ACTPolicy(config).eval()
+    base.load_state_dict({k: v for k, v in policy.state_dict().items() if k != "tar_step"})
+    batch = _batch(config, 2, seed=4)
+    loss, info = policy.forward(batch)
+    theirs, _ = base.forward(_folded_by_hand(batch, 2, 3))
+    assert info["tar_mix"] == 1.0 and info["tar_max_weight"] > 1.0
+    assert loss.item() == pytest.approx(theirs.item(), rel=1e-6)
+    assert loss.item() == pytest.approx(info["tar_uniform_loss"], rel=1e-6)
+
+
+def test_ess_and_the_largest_weight_are_one_before_tar_starts_and_not_after():
+    config = act_config(slice_len=3, start=1)
+    policy = ACTTARPolicy(config)
+    batch = _batch(config, 4, seed=5)
+    before = policy.forward(batch)[1]
+    after = policy.forward(batch)[1]
+    assert (before["tar_mix"], before["tar_ess"], before["tar_max_weight"]) == (0.0, 1.0, 1.0)
+    assert after["tar_mix"] == 1.0 and after["tar_ess"] < 1.0 and after["tar_max_weight"] > 1.0
+
+
+@pytest.mark.parametrize("time_axis, frames_per_item", [("segment", 3), ("chunk", 1)])
+def test_tar_epochs_count_frames_as_the_base_policy_does(state_dataset, time_axis, frames_per_item):
+    """LeRobot's epochs are steps x batch size / frames; an item of a segment holds slice_len frames."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    meta = LeRobotDatasetMetadata("local/tar_tiny", root=state_dataset)
+    frames = sum(EPISODE_LENGTHS)
+    assert meta.total_frames == frames
+    config = act_config(slice_len=3, time_axis=time_axis)
+    policy = ACTTARPolicy(config, dataset_meta=meta)
+    batch = _batch(config, 2)
+    epochs = [policy.forward(batch)[1]["tar_epochs"] for _ in range(2)]
+    assert epochs == pytest.approx([2 * frames_per_item / frames, 2 * 2 * frames_per_item / frames])
+    assert "tar_epochs" not in ACTTARPolicy(config).forward(batch)[1]  # no dataset: at inference

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 from lerobot_policy_tar.tar_source import tar_weights
-from lerobot_policy_tar.time_axis import ElementLosses, fold_segments, reduce_over_time
+from lerobot_policy_tar.time_axis import ElementLosses, effective_sample_size, fold_segments, reduce_over_time
 
 REPO = Path(__file__).resolve().parents[2]
 TAR = {"gamma": 1.0, "w_max": 3.0, "eps": 1e-8, "cap": "paper"}
@@ -77,6 +77,25 @@ def test_the_schedule_off_gives_the_mean_over_valid_entries_and_the_regulariser_
     )
     torch.testing.assert_close(out.losses, torch.tensor([[5.0, 11.0]]))
     torch.testing.assert_close(out.per_item, torch.tensor([(5.0 + 11.0) / 2 + (1.0 + 3.0) / 2]))
+
+
+def test_effective_sample_size_by_hand():
+    # (2, 1, 1) over 3 real steps: 4^2 / (3 * 6) = 8/9; (1, 1): 1; a segment without a real step does not count.
+    weights = torch.tensor([[2.0, 1.0, 1.0, 0.0], [1.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    valid = torch.tensor([[True, True, True, False], [True, True, False, False], [False] * 4])
+    assert effective_sample_size(weights, valid).item() == pytest.approx((8 / 9 + 1) / 2)
+    one_step = torch.tensor([[4.0, 0.0, 0.0, 0.0]])
+    assert effective_sample_size(one_step, torch.ones(1, 4, dtype=torch.bool)).item() == pytest.approx(1 / 4)
+
+
+def test_the_uniform_loss_is_the_mean_over_valid_steps_whatever_the_weights():
+    # Steps 1, 1, 1, 9 (and a padded NaN) with full TAR: the weighted loss is above the uniform one, 3, plus KL 0.5.
+    loss = torch.tensor([[[1.0], [1.0], [1.0], [9.0], [float("nan")]]], dtype=torch.float64)
+    valid = torch.tensor([[True, True, True, True, False]])
+    out = reduce_over_time(ElementLosses(loss, valid, torch.tensor([0.5], dtype=torch.float64)), segments=None,
+                           mix=1.0, **TAR)  # fmt: skip
+    torch.testing.assert_close(out.uniform, torch.tensor([3.0 + 0.5], dtype=torch.float64))
+    assert out.per_item.item() > out.uniform.item()
 
 
 def test_fold_segments_gives_each_step_its_own_observation_window_and_chunk():

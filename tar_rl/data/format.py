@@ -27,8 +27,8 @@ unparsable metadata, missing storage files, a size that disagrees with the metad
 whose content differs from ``digest.json``: an edited metadata number, a flipped byte in a memmap,
 a NaN or Inf in an entry) raises :class:`~tar_rl.data.checks.DatasetError`; the builders remove such
 a folder and write it again. The content check reads every file once per load (about 7 ms for the
-default job's 6 MB dataset, well under 1% of the job's start-up: ``benchmarks/bench_data.py --sections
-startup``). A folder without a digest is refused: :func:`seal_dataset` (``tar-rl data seal``) records
+default job's 6 MB dataset, well under 1% of the job's start-up: ``python -m benchmarks.bench_data
+--sections startup``). A folder without a digest is refused: :func:`seal_dataset` (``tar-rl data seal``) records
 one after the other checks pass, for a folder whose content its user trusts.
 
 Keys per step (``N`` steps, observation size ``D``, action size ``A``, chunk horizon ``H``):

@@ -45,8 +45,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from . import DataInfo, Policy, PolicySpec, register_policy
 from .attention import key_padding_bias, multihead
+from .base import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import ChunkedHeadConfig, chunked_policy
 from .common import PROPRIO_DIMS, ObsNorm, TaskEncoder, image_encoder
 

@@ -59,7 +59,7 @@ from torchrl.objectives import LossModule
 from tar_rl.objectives.elementwise import element_mean
 from tar_rl.objectives.inner import SIGNAL
 
-from . import DataInfo, Policy
+from .base import DataInfo, Policy
 from .common import TASK_CONDITIONING
 
 __all__ = ["EXECUTIONS", "TIME", "ChunkLoss", "ChunkedActor", "ChunkedHeadConfig", "check_execution", "chunked_policy"]

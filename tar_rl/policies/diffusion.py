@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from . import DataInfo, Policy, PolicySpec, register_policy
 from .attention import compile_once, use_compiled
+from .base import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import chunked_policy
 from .octo import OctoConfig, SeededSampling, check_chunk_shape, sinusoidal_embedding
 

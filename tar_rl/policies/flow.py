@@ -44,7 +44,7 @@ import torch
 import torch.distributed as torch_dist
 from torch import nn
 
-from . import DataInfo, Policy, PolicySpec, register_policy
+from .base import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import TIME, chunked_policy
 from .octo import OctoConfig, SeededSampling, TransformerBlock, check_chunk_shape, hold_last_valid, sinusoidal_embedding
 

@@ -10,7 +10,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.objectives import BCLoss
 
-from . import DataInfo, Policy, PolicySpec, register_policy
+from .base import DataInfo, Policy, PolicySpec, register_policy
 from .common import PROPRIO_DIMS, ObsNorm, TaskEncoder, image_encoder
 
 __all__ = ["MLPConfig", "MLPPolicy"]

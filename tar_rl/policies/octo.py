@@ -52,8 +52,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from . import DataInfo, Policy, PolicySpec, register_policy
 from .attention import attend, broadcast_attention, compile_once, use_compiled
+from .base import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import ChunkedHeadConfig, chunked_policy
 from .common import PROPRIO_DIMS, ObsNorm, TaskEncoder, image_encoder
 

@@ -14,10 +14,12 @@
 * :mod:`~tar_rl.report.phases`: :data:`PHASES`, :func:`first_gripper_close` and :func:`phase_labels`,
   a demonstration's phases from its gripper action; :func:`~tar_rl.report.phases.switch_steps` and
   :func:`~tar_rl.report.phases.label_steps`, its gripper switches and the labels of many demonstrations.
+* :mod:`~tar_rl.report.figures`: the studies' figures (Fig. 3(c), Fig. 4, the critical windows, Fig. 5 with
+  phases, the budget curve, the sensitivity grid), built on :mod:`~tar_rl.report.plots`.
+* :mod:`~tar_rl.report.weight_phases`: TAR's weight mass per demonstration phase and the critical windows.
 * :mod:`~tar_rl.report.cli`: :func:`main`, the body of ``tar-rl report RUN_DIR... [--out DIR]``.
 
-The paper experiments' own tables and figures (Tables I and III, Figs. 3(c), 4 and 5 with phases,
-critical windows) are in ``benchmarks/analysis`` and ``benchmarks/studies``, built on these.
+The paper experiments' own tables (Tables I and III) are in ``benchmarks/studies``, built on these.
 """
 
 from __future__ import annotations

@@ -13,7 +13,6 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from paths import REPO
 from tensordict.nn import TensorDictModuleBase
 
 from tar_rl.collectors.metaworld import evaluate as ev
@@ -318,18 +317,10 @@ def test_policy_training_mode_is_restored():
 
 
 def _bench_eval():
-    """benchmarks/bench_eval.py as the module ``bench_eval`` (registered: its workers pickle its functions by name)."""
-    import importlib.util
-    import sys
+    """``benchmarks.bench_eval`` (its spawned workers import it by that name)."""
+    from benchmarks import bench_eval
 
-    if "bench_eval" in sys.modules:
-        return sys.modules["bench_eval"]
-    path = REPO / "benchmarks" / "bench_eval.py"
-    spec = importlib.util.spec_from_file_location("bench_eval", path)
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules["bench_eval"] = bench
-    spec.loader.exec_module(bench)
-    return bench
+    return bench_eval
 
 
 def test_bench_eval_interleaved_raw_side_runs_every_step(monkeypatch):

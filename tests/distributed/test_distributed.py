@@ -22,7 +22,6 @@ import torch
 import torch.distributed as torch_dist
 import torch.multiprocessing as mp
 from objective_helpers import tar_loss
-from paths import REPO
 from recipe_helpers import compose_config
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
@@ -317,13 +316,8 @@ def test_batch_must_split_evenly_over_ranks(job):
 
 @pytest.mark.slow
 def test_bench_scale_quick_writes_csv(tmp_path):
-    import importlib.util
+    from benchmarks import bench_scale as bench  # its spawned ranks import it by that name
 
-    path = REPO / "benchmarks" / "bench_scale.py"
-    spec = importlib.util.spec_from_file_location("bench_scale", path)
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules["bench_scale"] = bench  # spawned ranks import it by name (its folder goes on sys.path)
-    spec.loader.exec_module(bench)
     out = tmp_path / "scale.csv"
     assert bench.main(["--quick", "--procs", "2", "--out", str(out)]) == 0
     df = pd.read_csv(out)

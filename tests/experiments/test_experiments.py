@@ -19,7 +19,11 @@ import pytest
 import yaml
 from run_helpers import ROLLOUTS, write_run
 
-from benchmarks.analysis.figures import (
+from benchmarks.studies import cli, paper
+from benchmarks.studies.core import Planner
+from benchmarks.studies.writers import controls_markdown, table_one_markdown
+from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
+from tar_rl.report.figures import (
     plot_critical_windows,
     plot_group_deltas,
     plot_heatmaps,
@@ -27,11 +31,7 @@ from benchmarks.analysis.figures import (
     plot_radar,
     plot_weight_phases,
 )
-from benchmarks.analysis.phases import critical_windows, phase_weight_mass
-from benchmarks.studies import cli, paper
-from benchmarks.studies.core import Planner
-from benchmarks.studies.writers import controls_markdown, table_one_markdown
-from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
+from tar_rl.report.weight_phases import critical_windows, phase_weight_mass
 from tar_rl.runs import config_differences
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

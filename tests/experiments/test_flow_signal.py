@@ -1,8 +1,8 @@
 """R7, TAR for a sampled loss (``benchmarks/studies/flow_signal.py``): the pre-registered selection rule on hand-made
 numbers (ties, the 1-point eligibility of per-segment times, candidate (a) planning no R7 run), the plans against
-R5's, the stages at the ci scale through the table (the noise analysis run in a ``--tree``, the selection from the
-committed table, the comparisons, Holm and the per-seed differences against hand-computed values), and the
-refusals."""
+R5's, the stages at the ci scale through the table (the noise analysis as a command, here or in a ``--tree``; the
+selection from the committed table; the comparisons, Holm and the per-seed differences against hand-computed
+values), and the refusals."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import hashlib
 import json
 import math
 import shutil
-import sys
 from pathlib import Path
 
 import pandas as pd
@@ -85,6 +84,12 @@ def test_the_candidates_means_over_the_pilots_seeds_from_a_noise_table():
         SystemExit, match=r"\(c\) time_normalized, step times for seeds \[0\], not the pilot's \[0, 1\]"
     ):
         flow_signal.candidate_means(table.drop(index=[6]), (0, 1))
+
+
+def test_the_study_reads_the_columns_the_noise_command_writes():
+    from benchmarks.analysis import noise
+
+    assert flow_signal.NOISE_COLUMNS == noise.SIGNAL_COLUMNS and flow_signal.NOISE_MEASURES == noise.SIGNAL_MEASURES
 
 
 # -- The plans ---------------------------------------------------------------------------------------------
@@ -197,30 +202,36 @@ def _inject(out: Path) -> None:
 
 
 def _tree(tmp: Path) -> tuple[Path, Path]:
-    """A checkout stand-in whose python records where it started and runs this repository's code."""
-    repo = Path(__file__).resolve().parents[2]
+    """A checkout stand-in whose python records where it started and its arguments, and fails."""
     tree = tmp / "tree"
     (tree / ".venv" / "bin").mkdir(parents=True)
     (tree / "tar_rl").mkdir()
     started = tmp / "started_in"
     wrapper = tree / ".venv" / "bin" / "python"
-    wrapper.write_text(f'#!/bin/sh\npwd > "{started}"\ncd "{repo}" && exec "{sys.executable}" "$@"\n')
+    wrapper.write_text(f'#!/bin/sh\npwd > "{started}"\necho "$@" >> "{started}"\nexit 3\n')
     wrapper.chmod(0o755)
     return tree, started
 
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory, data_root):
-    """The pilot (ci: seed 0), ``select`` twice (the noise table computed in a ``--tree``, then, with (b)'s
-    correlation raised by hand in the table, the selection), R7 over seeds 0 and 1 with successes injected, and the
-    table."""
+    """The pilot (ci: seed 0), ``select`` in a ``--tree`` whose analysis fails, ``select`` twice (the noise table,
+    then, with (b)'s correlation raised by hand in the table, the selection), R7 over seeds 0 and 1 with successes
+    injected, and the table."""
     tmp = tmp_path_factory.mktemp("flow_signal")
     out = tmp / "r7"
     common = ["--scale", "ci", "--out", str(out), "--data-root", str(data_root)]
     tree, started_in = _tree(tmp)
     assert main(["run", "pilot", *common]) == 0
-    assert main(["run", "select", *common, "--tree", str(tree)]) == 0
-    assert started_in.read_text().strip() == str(tree)
+    with pytest.raises(SystemExit, match=f"the noise analysis failed in {tree}"):
+        main(["run", "select", *common, "--tree", str(tree)])
+    where, arguments = started_in.read_text().splitlines()
+    words = arguments.split()
+    assert where == str(tree) and words[:3] == ["-m", "benchmarks.analysis", "noise"]
+    assert set(words[words.index("--runs") + 1].split(",")) == {p.name for p in (out / "runs").iterdir()}
+    assert words[words.index("--signals") + 1] == "all" and words[words.index("--from") + 1] == str(out / "runs")
+    assert not (out / "pilot_noise.csv").exists()
+    assert main(["run", "select", *common]) == 0  # the analysis by this Python, in the repository
     assert not (out / "selection.json").exists()  # the table first
     with pytest.raises(SystemExit, match=r"R7 has no selection yet"):
         main(["table", "--complete", *common])

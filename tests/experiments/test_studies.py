@@ -155,3 +155,30 @@ def test_a_scale_names_its_overrides_and_seeds():
     scale = Scale("s", "about", ("a=1",), (0, 1))
     planner = Planner(scale, Path("o"), "d", ("e=2",))
     assert planner.overrides("f=3") == ("a=1", f"runs_root={Path('o') / 'runs'}", "data.root=d", "e=2", "f=3")
+
+
+@pytest.mark.slow  # two study commands, each a Python process that loads the dataset and tries two runs: ~30 s
+@pytest.mark.parametrize("jobs", ["1", "2"])  # runs trained in the command's process, or as subprocesses
+def test_a_stage_whose_runs_failed_exits_non_zero(jobs, tmp_path, data_root):
+    """Another process holds the runs' folders (as a second `run` on the same study folder does): every run of the
+    stage fails, the command says so and exits 1, so that a script or a CI job does not read success."""
+    import contextlib
+    import subprocess
+    import sys
+
+    from tar_rl.runlock import run_lock
+
+    argv = ["regimes", "run", "r3", "--scale", "ci", "--out", str(tmp_path / "out"), "--data-root", str(data_root)]
+    argv += ["--seeds", "0", "--jobs", jobs]
+    ctx = cli.context(regimes.STUDY, argv[1:])
+    specs = regimes.pairs(regimes.r3_stage(ctx.sizes), ctx.planner)
+    with contextlib.ExitStack() as held:
+        for spec in specs:
+            spec.run_dir.mkdir(parents=True)
+            held.enter_context(run_lock(spec.run_dir))
+        done = subprocess.run(
+            [sys.executable, "-m", "benchmarks.studies", *argv], cwd=REPO, capture_output=True, text=True, timeout=600
+        )
+    assert done.returncode == 1, done.stdout + done.stderr
+    names = ", ".join(spec.run_dir.name for spec in specs)
+    assert f"{len(specs)} run(s) failed: " in done.stdout and all(s.run_dir.name in done.stdout for s in specs), names

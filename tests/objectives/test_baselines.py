@@ -386,7 +386,9 @@ def test_focal_needs_an_exact_cap_of_at_least_one():
     inner = BCLoss(TensorDictModule(torch.nn.Linear(2, 2), ["observation"], ["action"]), reduction="none")
     with pytest.raises(ValueError, match=r"^w_max must be >= 1 for the focal weighting"):
         tar_loss(inner, "focal", w_max=0.5)
-    tar_loss(inner, "tar", w_max=0.5)  # TAR's paper cap takes any w_max > 0
+    # TAR refuses it with either cap: one rule, w_max >= 1 (check_tar_params)
+    with pytest.raises(ValueError, match=r"^w_max >= 1 is needed .*cap='paper' renormalises them above it"):
+        tar_loss(inner, "tar", w_max=0.5)
 
 
 @pytest.mark.parametrize(

@@ -5,21 +5,16 @@ No timing is asserted here (speed is measured as ratios in benchmarks/, never in
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import math
 
 import pandas as pd
 import pytest
 from paths import REPO
 
-BENCH = REPO / "benchmarks" / "bench_objective.py"
-
 
 def _load_bench(name: str = "bench_objective"):
-    spec = importlib.util.spec_from_file_location(name, BENCH.parent / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module(f"benchmarks.{name}")
 
 
 @pytest.mark.slow
@@ -106,3 +101,16 @@ def test_bench_heads_times_the_eager_weighting_beside_a_compiled_one(tmp_path):
     assert set(over.variant) == {"tar", "tar_eager"} and (over["median"] > 0).all()
     bench.main([*args, "--out", str(out)])  # auto on the CPU: nothing compiled, no eager twin
     assert set(pd.read_csv(out).query("section == 'tar_overhead'").variant) == {"tar"}
+
+
+@pytest.mark.slow  # starts a Python process that imports torch and builds a head: ~10 s
+def test_an_against_worker_times_steps_with_the_tar_rl_of_its_checkout():
+    bench = _load_bench("bench_heads")
+    args = bench.parse_args(["--quick", "--batch", "4", "--slice-len", "4"])
+    worker = bench.Worker(REPO, args)  # this checkout, as `--against` starts one for each of its two
+    try:
+        seconds = [worker.time("mlp", False, 2), worker.time("mlp", False, 1)]
+    finally:
+        worker.close()
+    assert worker.proc.returncode == 0
+    assert all(math.isfinite(s) and s > 0 for s in seconds)

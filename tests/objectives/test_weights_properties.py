@@ -43,8 +43,7 @@ def batches(draw, min_valid: int = 0):
 def tar_params(draw):
     cap = draw(st.sampled_from(["paper", "exact"]))
     gamma = draw(st.sampled_from([0.25, 1.0, 2.0, 4.0]))
-    w_maxes = [1.0, 1.5, 3.0, 10.0, math.inf] + ([0.5] if cap == "paper" else [])
-    w_max = draw(st.sampled_from(w_maxes))
+    w_max = draw(st.sampled_from([1.0, 1.5, 3.0, 10.0, math.inf]))
     return {"cap": cap, "gamma": gamma, "w_max": w_max}
 
 

@@ -39,14 +39,40 @@ def test_a_slice_longer_than_the_longest_given_episode_is_refused_before_work(tm
 
 
 def test_a_slice_longer_than_the_longest_collected_episode_is_refused_before_the_first_step(tmp_path, data_root):
-    # A collected dataset's episodes are known once it is collected: refused then, before any step.
-    config = tiny(tmp_path, data_root, "data.slice_len=1000")
-    with pytest.raises(ConfigError, match=r"data\.slice_len=1000 is longer than the longest episode") as err:
+    # A collected dataset's episodes are known once it is collected: refused then, before any step (400: within
+    # MetaWorld's 500-step horizon, which is refused before collecting, below).
+    config = tiny(tmp_path, data_root, "data.slice_len=400")
+    with pytest.raises(ConfigError, match=r"data\.slice_len=400 is longer than the longest episode") as err:
         train(config)
     ds = build_dataset(data_root, [TASK], 2, workers=1, progress=False, verbose=False)
     longest = int(np.unique(ds.data["episode"].numpy(), return_counts=True)[1].max())  # counted here, by numpy
     assert f"({longest} steps)" in str(err.value) and f"between 1 and {longest}" in str(err.value)
     assert not list((tmp_path / "runs").glob(f"*/{CHECKPOINT}"))
+
+
+@pytest.mark.parametrize("suite", ["metaworld", "dm_control"])
+def test_a_slice_longer_than_any_demonstration_a_suite_collects_is_refused_before_collecting(
+    suite, tmp_path, monkeypatch
+):
+    from tar_rl.collectors import dmc
+    from tar_rl.collectors.metaworld import demos
+
+    def no_collection(*args, **kwargs):
+        raise AssertionError("collected demonstrations for a job refused before collecting")
+
+    monkeypatch.setattr(demos, "collect", no_collection)
+    monkeypatch.setattr(dmc, "expert_episodes", no_collection)
+    longest = {"metaworld": 500, "dm_control": 1000}[suite]  # each suite's episode limit, its experts' too
+    tasks = {"metaworld": [], "dm_control": ["data.tasks=[point_mass-easy]", "eval.rollouts=0"]}[suite]
+    config = tiny(tmp_path, tmp_path / "data", f"data.suite={suite}", *tasks, "data.slice_len=100000")
+    message = (
+        rf"data\.slice_len=100000 is longer than any demonstration the {suite} suite collects \(at most {longest} "
+        rf"steps\), so every segment would be padded; choose data\.slice_len between 1 and {longest}"
+    )
+    with pytest.raises(ConfigError, match=message):
+        train(config)
+    assert not (tmp_path / "data").exists() or not any((tmp_path / "data").iterdir())
+    validate(tiny(tmp_path, tmp_path / "data", f"data.suite={suite}", *tasks, f"data.slice_len={longest}"))
 
 
 def test_data_tasks_that_disagree_with_a_given_dataset_are_refused(tmp_path, lift, data_root):

@@ -30,9 +30,10 @@ from tar_rl.recipes import ConfigError, validate
             "objective.gripper_dims [-5, -1] name dims outside the loss's 4 action dims: [-5] (valid: -4 .. 3).",
         ),
         (
-            ["objective.w_max=1e-39"],  # below 2**-126 = 1.175e-38: clipping at it and rescaling gives inf
-            "objective.w_max must be >= 1.175e-38 (the smallest normal float32: renormalising weights clipped at a "
-            "smaller cap overflows to inf), got 1e-39.",
+            ["objective.w_max=0.5"],  # the paper cap's too: unit-mean weights renormalise above any cap under 1
+            "objective.w_max >= 1 is needed (weights of mean 1 cannot all lie below a smaller cap: cap='paper' "
+            "renormalises them above it, cap='exact' cannot reach it), got 0.5; use a number >= 1 (math.inf for no "
+            "cap)",
         ),
         (
             ["objective.start=0.8", "objective.ramp=0.3"],
@@ -54,9 +55,7 @@ def test_values_that_would_fail_after_work_starts_are_refused_first(overrides, m
 
 def test_the_limits_themselves_are_accepted():
     validate(compose_config("optim.steps=1000000000", "optim.lr=1.0", "objective.start=0.7", "objective.ramp=0.3"))
-    validate(
-        compose_config("objective=tar_arm", "objective.gripper_dims=[-4,2]", "objective.w_max=1.1754943508222875e-38")
-    )
+    validate(compose_config("objective=tar_arm", "objective.gripper_dims=[-4,2]", "objective.w_max=1.0"))
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,11 @@ A TAR policy is its base policy (same network, processors, inference and checkpo
 :meth:`TARPolicyMixin.forward`, shared by all five. What differs per base policy is only where its per-element loss
 comes from, :meth:`element_losses`: the base's own loss up to the point where it reduces (LeRobot's
 ``policy.forward`` returns a scalar).
+
+The forward's log (LeRobot prints every number of it at ``--log_freq``) holds the TAR-weighted loss and, for
+comparison with the base policy's run, the uniform loss of the same batch, the base policy's own sub-losses (ACT's
+``l1_loss`` and ``kld_loss``), the weights' ESS and largest value, and the epochs in the base policy's count of
+frames. In evaluation mode (LeRobot's ``eval_loss``) the forward returns the uniform loss, the base policy's own.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_LANGUAGE_ATTENTION_M
 from torch import Tensor
 
 from .configuration_tar import ACTTARConfig, DiffusionTARConfig, PI0TARConfig, PI05TARConfig, SmolVLATARConfig
-from .time_axis import ElementLosses, fold_segments, reduce_over_time
+from .time_axis import ElementLosses, effective_sample_size, fold_segments, reduce_over_time
 
 __all__ = ["ACTTARPolicy", "DiffusionTARPolicy", "PI0TARPolicy", "PI05TARPolicy", "SmolVLATARPolicy", "TARPolicyMixin"]
 
@@ -46,27 +51,48 @@ def _entry_valid(batch: dict[str, Any], loss: Tensor) -> Tensor:
     return torch.ones(loss.shape[:2], dtype=torch.bool, device=loss.device) if is_pad is None else ~is_pad
 
 
+def _fill_missing_tar_step(module, state_dict, prefix, *args) -> None:
+    """A state dict without ``tar_step`` (a base policy's checkpoint: post-training starts from one) loads with the
+    schedule at step 0 instead of LeRobot's warning about a missing key."""
+    state_dict.setdefault(prefix + "tar_step", torch.zeros((), dtype=torch.long))
+
+
+def _world_size() -> int:
+    distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
+    return torch.distributed.get_world_size() if distributed else 1
+
+
 class TARPolicyMixin:
     """The training forward of every TAR policy (the first base of each; the second is the LeRobot policy).
 
     The policy counts its training forwards in the buffer ``tar_step`` (saved with the weights, so a resumed run
-    continues TAR's schedule) and reads ``policy.tar`` (:class:`~lerobot_policy_tar.configuration_tar.TARSettings`).
+    continues TAR's schedule; a checkpoint without it, a base policy's, starts it at 0) and reads ``policy.tar``
+    (:class:`~lerobot_policy_tar.configuration_tar.TARSettings`).
     """
 
+    #: The base policy's name for the mean of its element losses over the real entries (ACT: ``l1_loss``), logged.
+    element_loss_name: str | None = None
+
     def __init__(self, config, **kwargs):
-        check_segment_fits(config, kwargs.get("dataset_meta"))
+        dataset_meta = kwargs.get("dataset_meta")
+        check_segment_fits(config, dataset_meta)
         super().__init__(config, **kwargs)
         self.register_buffer("tar_step", torch.zeros((), dtype=torch.long))
+        self.register_load_state_dict_pre_hook(_fill_missing_tar_step)
+        #: The dataset's frames, for ``tar_epochs`` (unknown without the dataset: at inference).
+        self.tar_dataset_frames = None if dataset_meta is None else int(dataset_meta.total_frames)
 
     def element_losses(self, batch: dict[str, Any]) -> ElementLosses:
         """The base policy's per-element training loss on a batch of its own shapes."""
         raise NotImplementedError
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
-        """The training loss: the mean over items (``reduction="mean"``) or one per item, ``[B]`` (``"none"``)."""
+        """The loss: the mean over items (``reduction="mean"``) or one per item, ``[B]`` (``"none"``); TAR-weighted
+        in training mode, uniform (the base policy's reduction) in evaluation mode."""
         if reduction not in REDUCTIONS:
             raise ValueError(f"reduction must be one of {REDUCTIONS}, got {reduction!r}.")
         tar, config = self.config.tar, self.config
+        items = batch["action"].shape[0]
         segments = None
         if tar.time_axis == "segment":
             base_obs = config.base_observation_delta_indices
@@ -80,22 +106,50 @@ class TARPolicyMixin:
                 action_offset=-min(base_action),
             )
         mix = tar.schedule(self.tar_step)
+        element = self.element_losses(batch)
         out = reduce_over_time(
-            self.element_losses(batch), segments=segments, gamma=tar.gamma, w_max=tar.w_max, eps=tar.eps,
-            cap=tar.cap, mix=mix,
-        )  # fmt: skip
+            element, segments=segments, gamma=tar.gamma, w_max=tar.w_max, eps=tar.eps, cap=tar.cap, mix=mix
+        )
         if self.training:
             self.tar_step += 1
-        loss = out.per_item if reduction == "none" else out.per_item.mean()
-        info = {"loss": out.per_item.mean().item(), "tar_mix": float(mix), "tar_max_weight": out.weights.max().item()}
+        per_item = out.per_item if self.training else out.uniform
+        loss = per_item if reduction == "none" else per_item.mean()
+        info = {
+            "loss": per_item.mean().item(),
+            "tar_uniform_loss": out.uniform.mean().item(),
+            **self._base_terms(element, out.valid.reshape(-1) if segments is not None else out.valid.any(-1)),
+            "tar_mix": float(mix),
+            "tar_max_weight": out.weights.max().item(),
+            "tar_ess": effective_sample_size(out.weights, out.valid).item(),
+        }
+        if self.tar_dataset_frames:
+            # LeRobot counts epochs as steps x batch size / frames; an item of a segment holds slice_len frames.
+            frames = items * (tar.slice_len if segments is not None else 1) * _world_size()
+            info["tar_epochs"] = int(self.tar_step) * frames / self.tar_dataset_frames
         return loss, info
+
+    def _base_terms(self, element: ElementLosses, real: Tensor) -> dict[str, float]:
+        """The base policy's own logged terms, unweighted, over the ``real`` ``[N]`` items of its own batch (a
+        segment's steps inside the episode): the mean of the element losses over their real entries
+        (``element_loss_name``) and the mean of each of ``element.terms``."""
+        terms = {}
+        if self.element_loss_name is not None:
+            entries = element.valid & real[:, None]
+            count = entries.sum() * element.loss.shape[-1]
+            total = torch.where(entries[..., None], element.loss, torch.zeros((), dtype=element.loss.dtype)).sum()
+            terms[self.element_loss_name] = (total / count.clamp_min(1)).item()
+        for name, value in element.terms.items():
+            terms[name] = (value * real).sum().item() / max(int(real.sum()), 1)
+        return terms
 
 
 class ACTTARPolicy(TARPolicyMixin, ACTPolicy):
-    """ACT with TAR: the L1 loss per chunk entry and action dim; the VAE's KL term (times ``kl_weight``) per item."""
+    """ACT with TAR: the L1 loss per chunk entry and action dim; the VAE's KL term (times ``kl_weight``) per item.
+    Logs ACT's own ``l1_loss`` and ``kld_loss`` (the KL before ``kl_weight``), unweighted."""
 
     config_class = ACTTARConfig
     name = "act_tar"
+    element_loss_name = "l1_loss"
 
     def element_losses(self, batch):
         if self.config.image_features:
@@ -103,10 +157,10 @@ class ACTTARPolicy(TARPolicyMixin, ACTPolicy):
             batch[OBS_IMAGES] = [batch[key] for key in self.config.image_features]
         actions_hat, (mu, log_sigma_x2) = self.model(batch)
         loss = F.l1_loss(actions_hat, batch[ACTION], reduction="none")
-        kl = None
         if self.config.use_vae and log_sigma_x2 is not None:
-            kl = (-0.5 * (1 + log_sigma_x2 - mu.pow(2) - log_sigma_x2.exp())).sum(-1) * self.config.kl_weight
-        return ElementLosses(loss, _entry_valid(batch, loss), kl)
+            kld = (-0.5 * (1 + log_sigma_x2 - mu.pow(2) - log_sigma_x2.exp())).sum(-1)
+            return ElementLosses(loss, _entry_valid(batch, loss), kld * self.config.kl_weight, {"kld_loss": kld})
+        return ElementLosses(loss, _entry_valid(batch, loss))
 
 
 class DiffusionTARPolicy(TARPolicyMixin, DiffusionPolicy):

@@ -13,12 +13,14 @@ end), plus, for ACT, a per-item regulariser ``[N]`` (the VAE's KL term). From it
 
 The item's loss is the TAR-weighted mean over its valid steps plus the mean of the regulariser over them: the
 regulariser is not an imitation loss and is not reweighted. Items come back as ``[B]``, so LeRobot's own sample
-weights (``reduction="none"``) multiply them as they multiply any policy's per-sample loss.
+weights (``reduction="none"``) multiply them as they multiply any policy's per-sample loss. Beside it the reduction
+gives the same items' uniform loss (every valid step weighted 1) and the weights' effective sample size, so a run's
+log compares with the base policy's.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -26,7 +28,7 @@ from torch import Tensor
 
 from .tar_source import tar_weights
 
-__all__ = ["ElementLosses", "TARReduction", "fold_segments", "reduce_over_time"]
+__all__ = ["ElementLosses", "TARReduction", "effective_sample_size", "fold_segments", "reduce_over_time"]
 
 
 @dataclass(frozen=True)
@@ -37,11 +39,15 @@ class ElementLosses:
         loss: ``[N, H, A]`` per-element loss (action chunk entries x action dims).
         valid: ``[N, H]`` bool, ``True`` on real chunk entries, ``False`` on padding.
         extra: ``[N]`` per-item regulariser added unweighted (ACT's weighted KL term), or ``None``.
+        terms: ``[N]`` per-item unweighted terms the base policy logs besides its loss, by the base policy's name
+            for them (ACT: ``kld_loss``, its KL divergence before ``kl_weight``); the policy logs their mean over
+            the real steps.
     """
 
     loss: Tensor
     valid: Tensor
     extra: Tensor | None = None
+    terms: dict[str, Tensor] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -50,12 +56,15 @@ class TARReduction:
 
     Attributes:
         per_item: ``[B]`` loss per dataset item (a segment or a chunk).
+        uniform: ``[B]`` the same items' loss with uniform weights (every valid step 1): the base policy's
+            reduction over time.
         losses: ``[B, T]`` the per-step losses TAR weighted (detached).
         valid: ``[B, T]`` bool, ``True`` on real steps.
         weights: ``[B, T]`` TAR's weights (``0`` on padding, mean ``1`` over the valid steps of an item).
     """
 
     per_item: Tensor
+    uniform: Tensor
     losses: Tensor
     valid: Tensor
     weights: Tensor
@@ -160,7 +169,21 @@ def reduce_over_time(
     weights = tar_weights(losses, valid, gamma=gamma, w_max=w_max, eps=eps, cap=cap, mix=mix)
     n_valid = valid.sum(-1).clamp_min(1)
     per_item = (weights * losses).sum(-1) / n_valid
+    uniform = (valid * losses).sum(-1) / n_valid
     if element.extra is not None:
         extra = element.extra if segments is None else element.extra.reshape(segments.shape)
-        per_item = per_item + (extra if segments is None else (extra * valid).sum(-1) / n_valid)
-    return TARReduction(per_item=per_item, losses=losses.detach(), valid=valid, weights=weights)
+        extra = extra if segments is None else (extra * valid).sum(-1) / n_valid
+        per_item = per_item + extra
+        uniform = uniform + extra
+    return TARReduction(per_item=per_item, uniform=uniform, losses=losses.detach(), valid=valid, weights=weights)
+
+
+def effective_sample_size(weights: Tensor, valid: Tensor) -> Tensor:
+    """The mean over items with a valid step of ``(sum w)^2 / (M sum w^2)`` over their ``M`` valid steps: 1 for
+    uniform weights, ``1 / M`` when one step takes all the weight (tar-rl's ``weight_ess``)."""
+    m = valid.to(weights.dtype)
+    n_valid = m.sum(-1)
+    square_sum = (weights.square() * m).sum(-1)
+    ess = (weights * m).sum(-1).square() / (n_valid * square_sum).clamp_min(torch.finfo(weights.dtype).tiny)
+    nonempty = n_valid > 0
+    return (ess * nonempty).sum() / nonempty.sum().clamp_min(1)

@@ -1,7 +1,8 @@
 """The studies' figures, from their tables: Fig. 3(c) (:func:`plot_group_deltas`), Fig. 4 (:func:`plot_radar`),
 the critical windows and Fig. 5 with phases (:func:`plot_critical_windows`, :func:`plot_weight_phases`), the budget
 curve (:func:`plot_lines`) and the sensitivity grid (:func:`plot_heatmaps`). Built on the figure helpers of
-:mod:`tar_rl.report`.
+:mod:`tar_rl.report.plots`; the studies (``benchmarks/studies``) and their analyses (``benchmarks/analysis``) draw
+with them.
 """
 
 from __future__ import annotations
