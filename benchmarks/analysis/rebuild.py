@@ -18,11 +18,26 @@ __all__ = ["Rebuilt", "checkpoint_parser", "read_checkpoint", "rebuild_final", "
 class Rebuilt:
     """A run's objective (its policy inside) at the final step, its validated config and the recorded
     demonstrations: ``(task, episode, TensorDict)`` per episode, the first ``logging.record_episodes`` of each
-    training task (:func:`tar_rl.recipes.record.demo_episodes`)."""
+    training task (:func:`tar_rl.recipes.record.demo_episodes`); ``policy``, the head the objective wraps (what
+    another objective on the same weights is built from, :meth:`objective_with`)."""
 
     objective: object
     cfg: object
     episodes: list
+    policy: object = None
+
+    def objective_with(self, signal: str):
+        """The run's objective ranking by ``signal`` (``objective.signal``): :attr:`objective` itself where the
+        run trained with that signal (its state, e.g. a running mean, as the checkpoint holds it), else a new one
+        on the same policy, built as the recipe builds it (a signal's state, if any, fresh)."""
+        from dataclasses import replace
+
+        from tar_rl.recipes.builders import make_objective
+
+        if signal == self.cfg.objective.signal:
+            return self.objective
+        obj = replace(self.cfg.objective, signal=signal)
+        return make_objective(obj, self.cfg.optim.steps, self.cfg.seed, self.policy)
 
 
 def read_checkpoint(path: Path, who: str) -> dict:
@@ -80,8 +95,11 @@ def training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict, who: str
 def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Rebuilt:
     """``run``'s objective and policy from its final checkpoint, and its recorded demonstrations.
 
-    The policy and objective are built from the checkpoint's config and weights; ``data_root`` defaults to the
-    run's ``data.root``; ``demos`` caches the datasets read, across runs (updated here).
+    The policy and objective are built from the checkpoint's config and weights, the policy eager
+    (``policy.compile`` off where the head has it: an analysis trains nothing, and the compiled kernels, which
+    only a step with gradients on takes, would compile once per batch shape for the same numbers up to float
+    rounding); ``data_root`` defaults to the run's ``data.root``; ``demos`` caches the datasets read, across runs
+    (updated here).
 
     Raises:
         SystemExit: no checkpoint, an unfinished one, or no training data (``who`` names the command).
@@ -99,6 +117,8 @@ def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Re
     config = with_defaults(state["config"])
     config["init"] = {"from": None}  # rebuilding needs neither a post-training source nor held-out data
     config["diagnostics"]["heldout_demos"] = 0
+    if "compile" in config["policy"]:
+        config["policy"]["compile"] = False
     job = validate(config)
     cfg = job.config
     if not state["finished"] or state["step"] != cfg.optim.steps:
@@ -111,7 +131,7 @@ def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Re
     if root not in demos:
         demos[root] = training_demos(root, cfg, job.train_tasks, state["data_info"], who)
     episodes = demo_episodes(demos[root], job.train_tasks, cfg.logging.record_episodes, policy.keys, "cpu")
-    return Rebuilt(objective, cfg, episodes)
+    return Rebuilt(objective, cfg, episodes, policy)
 
 
 def checkpoint_parser(prog: str, description: str, runs: str, out: Path) -> argparse.ArgumentParser:

@@ -36,6 +36,7 @@ STUDIES = {
     "tuning": "benchmarks.studies.tuning",
     "baselines": "benchmarks.studies.baselines",
     "why_act": "benchmarks.studies.why_act",
+    "flow_signal": "benchmarks.studies.flow_signal",
 }
 COMMANDS = ("plan", "run", "table", "collect")
 

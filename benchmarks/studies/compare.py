@@ -2,8 +2,9 @@
 
 Runs pair by seed; a pair trained at different commits, machines or devices is refused
 (:func:`check_pairs`). :func:`paired` gives one arm's paired statistics at a metric and level (the mean paired
-difference, its 95% CI, the paired t-test's p and the minimum detectable effect), :func:`holm_into` the Holm
-correction over a family of them.
+difference, its 95% CI, the paired t-test's p and the minimum detectable effect), :func:`contrast` one pre-registered
+comparison's row (success, Fast20, NEPS) and per-group rows, :func:`holm_into` the Holm correction over a family of
+them; :func:`finished_runs` a planned stage's finished runs per arm and seed.
 """
 
 from __future__ import annotations
@@ -11,18 +12,24 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import pandas as pd
 
 __all__ = [
     "FINAL_SHARE",
+    "Comparison",
     "check_pairs",
+    "contrast",
+    "contrasts",
     "final_train_mean",
+    "finished_runs",
     "finite_mean",
     "fit_means",
     "fit_summary",
     "holm_into",
     "paired",
+    "stage_fits",
 ]
 
 # The share of the last training steps over which a run's weight statistics are averaged (as the final train loss).
@@ -55,6 +62,93 @@ def paired(runs: Sequence, objective: str, metric: str = "success", level: str =
     rec = table[(table["metric"] == metric) & (table["level"] == level)].iloc[0].to_dict()
     rec["mde"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
     return rec
+
+
+def contrast(label: str, treatment: Sequence, baseline: Sequence) -> tuple[dict, pd.DataFrame]:
+    """One comparison's row (success, Fast20 and NEPS: means, the mean paired difference, its 95% CI, the paired
+    t-test's p, the MDE at 80% power, pairs where the treatment is higher) and its per-group rows."""
+    from tar_rl.report import min_detectable_effect, paired_table, run_percent
+
+    t_name, b_name = treatment[0].objective, baseline[0].objective
+    paired = paired_table([*treatment, *baseline], baseline=b_name, objectives=[t_name], file=io.StringIO())
+    row: dict = {"comparison": label}
+    for metric in ("success", "fast20", "neps"):
+        rec = paired[(paired["metric"] == metric) & (paired["level"] == "overall")].iloc[0]
+        row[f"{metric}_treatment"], row[f"{metric}_baseline"] = rec["objective_mean"], rec["baseline_mean"]
+        row[f"d_{metric}"] = rec["delta_mean"]
+        row[f"d_{metric}_ci_low"], row[f"d_{metric}_ci_high"] = rec["ci_low"], rec["ci_high"]
+        row[f"p_{metric}"] = rec["p_value"]
+        if metric == "success":
+            row["pairs"] = int(rec["n_pairs"])
+            row["mde_success"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
+    by_seed = {r.seed: run_percent(r)[("success", "overall")] for r in baseline}
+    row["higher"] = sum(run_percent(r)[("success", "overall")] > by_seed[r.seed] for r in treatment)
+    groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(comparison=label)
+    return row, groups
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """``treatment - baseline`` in one stage; ``primary`` comparisons form the study's Holm family."""
+
+    label: str
+    stage: str
+    treatment: str
+    baseline: str
+    primary: bool
+
+
+def contrasts(comparisons: Sequence[Comparison], loaded: dict) -> tuple[list[dict], list[pd.DataFrame]]:
+    """Every comparison of ``comparisons`` over the seeds both its arms have (``loaded``: per stage, the finished
+    runs per arm and seed, :func:`finished_runs`), refused where a pair was trained at different commits, machines
+    or devices (:func:`check_pairs`): the rows of :func:`contrast` with ``primary``, Holm over the primary ones present
+    (``holm_p``), and their per-group rows."""
+    rows, groups = [], []
+    for c in comparisons:
+        arms = loaded.get(c.stage) or {}
+        if not arms:
+            continue
+        seeds = sorted(set(arms.get(c.treatment, {})) & set(arms.get(c.baseline, {})))
+        if not seeds:
+            continue
+        treatment, baseline = [arms[c.treatment][s] for s in seeds], [arms[c.baseline][s] for s in seeds]
+        check_pairs([*treatment, *baseline])
+        row, group = contrast(c.label, treatment, baseline)
+        rows.append({**row, "primary": c.primary})
+        groups.append(group)
+    holm_into([r for r in rows if r["primary"]], "p_success")
+    return rows, groups
+
+
+def stage_fits(loaded: dict) -> list[dict]:
+    """The fit and weights (:func:`fit_summary`) of each stage's arms over the seeds every arm of the stage has
+    (``loaded`` as :func:`contrasts`): ``stage``, ``arm``, ``seeds`` and the statistics."""
+    fits = []
+    for stage, arms in loaded.items():
+        common = sorted(set.intersection(*(set(a) for a in arms.values()))) if arms else []
+        for arm, by_seed in arms.items():
+            if common:
+                fits.append(
+                    {"stage": stage, "arm": arm, "seeds": len(common)} | fit_summary([by_seed[s] for s in common])
+                )
+    return fits
+
+
+def finished_runs(specs: dict, who: str, stage: str, complete: bool) -> tuple[dict[str, dict[int, object]], list[str]]:
+    """A stage's finished runs per arm and seed (loaded; ``specs``: its planned runs per arm) and the names of its
+    planned runs not finished, seed by seed.
+
+    Raises:
+        SystemExit: with ``complete``, a run of the plan is missing (``who`` names the study).
+    """
+    from benchmarks.studies.core import seed_major
+    from tar_rl.report import load_run
+
+    missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
+    if complete and missing:
+        raise SystemExit(f"{who}: {stage} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
+    loaded = {arm: {s.config["seed"]: load_run(s.run_dir) for s in group if s.finished} for arm, group in specs.items()}
+    return loaded, missing
 
 
 def holm_into(rows: Sequence[dict], p_key: str, out_key: str = "holm_p") -> None:

@@ -23,6 +23,7 @@ from tar_rl.report import run_file
 __all__ = [
     "PACKED",
     "REPRODUCED_COLUMNS",
+    "check_stage_plan",
     "check_started",
     "collect",
     "final_rollouts",
@@ -92,6 +93,21 @@ def check_started(path: Path, entries: dict, record: bool, refusal: Callable[[st
             raise SystemExit(refusal(key, started[key], value))
     if record and any(key not in started for key in entries):
         write_json_atomic({**started, **{k: v for k, v in entries.items() if k not in started}}, path)
+
+
+def check_stage_plan(path: Path, who: str, key: str, specs: dict, record: bool) -> None:
+    """Refuse the plan of stage ``key`` (``specs``: its runs per arm) when its digest
+    (:func:`~benchmarks.studies.core.plan_digest`) differs from the one recorded in ``path`` when its runs started;
+    with ``record``, record it (the stage's first run starts). ``who`` names the study in the refusal."""
+    from benchmarks.studies.core import plan_digest
+
+    def refusal(key, recorded, now):
+        return (
+            f"{who}: {key}'s plan changed after its runs started (recorded {recorded} in {path}, now {now}); a "
+            f"plan may not change once its runs started: restore it, or remove {key}'s runs and its entry there"
+        )
+
+    check_started(path, {key: plan_digest(specs)}, record, refusal)
 
 
 def _copy_run(run: Path, tmp: Path, name: str, config: dict, summary: dict, keep: set[str]) -> None:

@@ -32,13 +32,13 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.studies.cli import Context, Study, ints, tables_dir
-from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, plan_digest, seed_major
+from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS, EIGHT_TASKS, PAIR, SOURCE_TASKS
-from benchmarks.studies.records import check_started, provenance, read_json
+from benchmarks.studies.records import check_stage_plan, check_started, provenance, read_json
 from benchmarks.studies.regimes_table import Planned, write_tables
 from benchmarks.studies.sweep import execute
 
-__all__ = ["SIZES", "STUDY", "RegimeSizes"]
+__all__ = ["SIZES", "STUDY", "RegimeSizes", "chunked_base"]
 
 CHUNKED_STARTED_FILE = "chunked_started.json"
 SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
@@ -233,16 +233,23 @@ def r3_stage(sizes: RegimeSizes) -> Stage:
     return Stage("r3", "the pairs on MT50, 50 demonstrations per task", sizes.r3, PAIR, sizes.scale.seeds)
 
 
+def chunked_base(sizes: RegimeSizes, label: str) -> tuple[str, ...]:
+    """The overrides of the chunked-heads regime ``label``'s runs (``R4``, ``R5``) without seed and objective: the
+    head at its settings, then R3's data, schedule and evaluation (what R6 and R7 repeat)."""
+    for regime, head, extra in sizes.chunked_heads:
+        if regime == label:
+            return (f"policy={head}", *extra, *sizes.chunked)
+    raise SystemExit(f"regimes: no chunked-heads regime {label!r} at this scale")
+
+
 def chunked_stage(sizes: RegimeSizes, label: str) -> Stage:
     """The chunked-heads regime ``label`` (``R4``, ``R5``): R3's data with its head, the three
     :data:`.protocol.CHUNKED_ARMS`."""
-    for regime, head, extra in sizes.chunked_heads:
-        if regime == label:
-            base = (f"policy={head}", *extra, *sizes.chunked)
-            arms = tuple(Arm.objective(a) for a in CHUNKED_ARMS)
-            about = f"the chunked head {head}: {', '.join(CHUNKED_ARMS)}"
-            return Stage(label.lower(), about, base, arms, sizes.scale.seeds)
-    raise SystemExit(f"regimes: no chunked-heads regime {label!r} at this scale")
+    base = chunked_base(sizes, label)
+    head = chunked_heads(sizes)[label]
+    arms = tuple(Arm.objective(a) for a in CHUNKED_ARMS)
+    about = f"the chunked head {head}: {', '.join(CHUNKED_ARMS)}"
+    return Stage(label.lower(), about, base, arms, sizes.scale.seeds)
 
 
 def chunked_heads(sizes: RegimeSizes) -> dict[str, str]:
@@ -339,15 +346,7 @@ def check_r2_started(out: Path, tasks: Sequence[str]) -> None:
 def check_plan_started(out: Path, label: str, specs: dict[str, list[Spec]], record: bool) -> None:
     """Refuse a chunked-heads plan that differs from the one its runs started with (``chunked_started.json``);
     with ``record``, record the plan when it is the regime's first."""
-    path = out / CHUNKED_STARTED_FILE
-
-    def refusal(key, recorded, now):
-        return (
-            f"regimes: {key}'s plan changed after its runs started (recorded {recorded} in {path}, now {now}); a "
-            f"plan may not change once its runs started: restore it, or remove {key}'s runs and its entry there"
-        )
-
-    check_started(path, {label: plan_digest(specs)}, record, refusal)
+    check_stage_plan(out / CHUNKED_STARTED_FILE, "regimes", label, specs, record)
 
 
 # -- The study -------------------------------------------------------------------------------------------

@@ -38,9 +38,10 @@ __all__ = [
 PRIMARY = ("R1", "R2", "R3")  # the comparisons the Holm correction runs over (R1: 3 demonstrations)
 #: The paired differences at a glance (:func:`write_paired_figure`).
 PAIRED_FIGURE = "fig_paired.png"
-#: R6 (``why_act``, results/regimes/PLAN.md "Why TAR helps act"): its folder under the study's, and the file of
-#: per-seed differences its table writes there (``label``, ``group``, ``seed``, ``delta``).
-R6_FOLDER, PAIRED_CSV = "r6", "paired.csv"
+#: R6 (``why_act``, results/regimes/PLAN.md "Why TAR helps act") and R7 (``flow_signal``, "TAR for a sampled loss"):
+#: their folders under the study's, and the file of per-seed differences their tables write there (``label``,
+#: ``group``, ``seed``, ``delta``).
+R6_FOLDER, R7_FOLDER, PAIRED_CSV = "r6", "r7", "paired.csv"
 
 
 @dataclass(frozen=True)
@@ -309,10 +310,18 @@ def _r6_source(planned: Planned, by_regime: dict[str, dict]) -> list[dict]:
     return pd.read_csv(path).to_dict("records") if path.is_file() else []
 
 
+def _r7_source(planned: Planned, by_regime: dict[str, dict]) -> list[dict]:
+    """R7's per-seed differences (each TAR arm minus uniform with the selected ranking signal), as the
+    ``flow_signal`` study's table writes them (``r7/paired.csv`` under :attr:`Planned.out`), or ``[]`` before it
+    has."""
+    path = planned.out / R7_FOLDER / PAIRED_CSV
+    return pd.read_csv(path).to_dict("records") if path.is_file() else []
+
+
 #: The paired figure's rows beyond R4 and R5, each ``(the planned runs, the chunked regimes' runs per arm by regime)
 #: -> rows`` (``label``, ``group``, ``seed``, ``delta``, as :func:`chunked_paired_rows`'s), drawn below them in this
-#: order: R6's controls where its runs are present. R7 (issue 36) has no runs yet: its source is added here.
-PAIRED_SOURCES: tuple[Callable[[Planned, dict], list[dict]], ...] = (_r6_source,)
+#: order: R6's controls and R7's arms where their runs are present.
+PAIRED_SOURCES: tuple[Callable[[Planned, dict], list[dict]], ...] = (_r6_source, _r7_source)
 
 
 def write_paired_figure(planned: Planned, by_regime: dict[str, dict], dest: Path) -> Path | None:

@@ -14,7 +14,17 @@ from pathlib import Path
 
 from benchmarks.studies.core import Scale, Spec
 
-__all__ = ["estimate_seconds", "execute"]
+__all__ = ["check_tree", "estimate_seconds", "execute"]
+
+
+def check_tree(tree: Path | None, who: str) -> Path | None:
+    """The checkout ``--tree`` names (another checkout's code trains the runs), resolved; refused unless it holds
+    tar-rl and its own ``.venv`` (``who`` names the study in the refusal)."""
+    if tree is None:
+        return None
+    if not (tree / ".venv" / "bin" / "python").is_file() or not (tree / "tar_rl").is_dir():
+        raise SystemExit(f"{who}: --tree {tree} is not a checkout of tar-rl with its own .venv (.venv/bin/python)")
+    return tree.resolve()
 
 
 def estimate_seconds(scale: Scale, specs: Sequence[Spec], jobs: int) -> float:

@@ -23,7 +23,6 @@ fit and weights and the tuning grid; with ``--complete`` a stage with a run of i
 from __future__ import annotations
 
 import argparse
-import io
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -31,13 +30,22 @@ from pathlib import Path
 
 import pandas as pd
 
+from benchmarks.studies import sweep
 from benchmarks.studies.cli import Context, Study
-from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_summary, holm_into
-from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, plan_digest, seed_major
-from benchmarks.studies.records import check_started, read_json
+from benchmarks.studies.compare import (
+    FINAL_SHARE,
+    Comparison,
+    contrast,
+    contrasts,
+    finished_runs,
+    stage_fits,
+)
+from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
+from benchmarks.studies.records import check_stage_plan, read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
+from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.sweep import execute
-from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
+from benchmarks.studies.writers import comparison_lines, fit_markdown, fmt_num, group_lines, write_outputs
 
 __all__ = [
     "BASE_ARMS",
@@ -87,11 +95,7 @@ class WhySizes:
 
 
 def _r4_base(label: str, scale: str) -> tuple[str, ...]:
-    sizes = REGIME_SIZES[scale]
-    for regime, head, extra in sizes.chunked_heads:
-        if regime == label:
-            return (f"policy={head}", *extra, *sizes.chunked)
-    raise SystemExit(f"why_act: no regime {label} at the {scale} scale")
+    return chunked_base(REGIME_SIZES[scale], label)
 
 
 _TUNE = dict(tune_eval_seed=2000, tune_rates=(3e-4, 1e-3, 3e-3), reference=1e-3, margin=2.0)
@@ -201,15 +205,7 @@ def grid_success(specs: dict[str, list[Spec]]) -> dict[float, float] | None:
 
 def check_plan(ctx: Context, key: str, specs: dict[str, list[Spec]], record: bool) -> None:
     """Refuse a stage's plan that differs from the one its runs started with; with ``record``, record it."""
-    path = ctx.out / STARTED_FILE
-
-    def refusal(key, recorded, now):
-        return (
-            f"why_act: {key}'s plan changed after its runs started (recorded {recorded} in {path}, now {now}); a "
-            f"plan may not change once its runs started: restore it, or remove {key}'s runs and its entry there"
-        )
-
-    check_started(path, {key: plan_digest(specs)}, record, refusal)
+    check_stage_plan(ctx.out / STARTED_FILE, "why_act", key, specs, record)
 
 
 def stage_specs(ctx: Context, stage: str) -> dict[str, list[Spec]] | None:
@@ -266,17 +262,6 @@ def run_tune(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
 # -- The tables --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Comparison:
-    """``treatment - baseline`` in one stage; ``primary`` comparisons form R6's Holm family."""
-
-    label: str
-    stage: str
-    treatment: str
-    baseline: str
-    primary: bool
-
-
 COMPARISONS = (
     Comparison("R6 tar - shuffle", "placement", "tar", "shuffle", True),
     Comparison("R6 tar - random", "placement", "tar", "random", True),
@@ -292,47 +277,17 @@ COMPARISONS = (
 )
 
 
-def contrast(label: str, treatment: Sequence, baseline: Sequence) -> tuple[dict, pd.DataFrame]:
-    """One comparison's row (success, Fast20 and NEPS: means, the mean paired difference, its 95% CI, the paired
-    t-test's p, the MDE at 80% power, pairs where the treatment is higher) and its per-group rows."""
-    from tar_rl.report import min_detectable_effect, paired_table, run_percent
-
-    t_name, b_name = treatment[0].objective, baseline[0].objective
-    paired = paired_table([*treatment, *baseline], baseline=b_name, objectives=[t_name], file=io.StringIO())
-    row: dict = {"comparison": label}
-    for metric in ("success", "fast20", "neps"):
-        rec = paired[(paired["metric"] == metric) & (paired["level"] == "overall")].iloc[0]
-        row[f"{metric}_treatment"], row[f"{metric}_baseline"] = rec["objective_mean"], rec["baseline_mean"]
-        row[f"d_{metric}"] = rec["delta_mean"]
-        row[f"d_{metric}_ci_low"], row[f"d_{metric}_ci_high"] = rec["ci_low"], rec["ci_high"]
-        row[f"p_{metric}"] = rec["p_value"]
-        if metric == "success":
-            row["pairs"] = int(rec["n_pairs"])
-            row["mde_success"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
-    by_seed = {r.seed: run_percent(r)[("success", "overall")] for r in baseline}
-    row["higher"] = sum(run_percent(r)[("success", "overall")] > by_seed[r.seed] for r in treatment)
-    groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(comparison=label)
-    return row, groups
-
-
 def stage_runs(ctx: Context, stage: str, complete: bool) -> tuple[dict[str, dict[int, object]], list[str]]:
     """A stage's finished runs per arm and seed (loaded) and the names of its planned runs not finished.
 
     Raises:
         SystemExit: the plan changed after its runs started; with ``complete``, a run of the plan is missing.
     """
-    from tar_rl.report import load_run
-
     specs = stage_specs(ctx, stage)
     if specs is None:
         return {}, []
     check_plan(ctx, stage, specs, record=False)
-    missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
-    if complete and missing:
-        raise SystemExit(f"why_act: {stage} misses {len(missing)} run(s) of its plan: {', '.join(missing)}")
-    return {
-        arm: {s.config["seed"]: load_run(s.run_dir) for s in group if s.finished} for arm, group in specs.items()
-    }, (missing)
+    return finished_runs(specs, "why_act", stage, complete)
 
 
 def comparison_rows(ctx: Context, complete: bool) -> tuple[list[dict], list[pd.DataFrame], list[dict], dict, list]:
@@ -342,28 +297,8 @@ def comparison_rows(ctx: Context, complete: bool) -> tuple[list[dict], list[pd.D
     loaded, missing = {}, {}
     for stage in ("placement", "tuned", "perturb"):
         loaded[stage], missing[stage] = stage_runs(ctx, stage, complete)
-    rows, groups, fits = [], [], []
-    for c in COMPARISONS:
-        arms = loaded[c.stage]
-        if not arms:
-            continue
-        seeds = sorted(set(arms[c.treatment]) & set(arms[c.baseline]))
-        if not seeds:
-            continue
-        treatment, baseline = [arms[c.treatment][s] for s in seeds], [arms[c.baseline][s] for s in seeds]
-        check_pairs([*treatment, *baseline])
-        row, group = contrast(c.label, treatment, baseline)
-        rows.append({**row, "primary": c.primary})
-        groups.append(group)
-    for stage, arms in loaded.items():
-        common = sorted(set.intersection(*(set(a) for a in arms.values()))) if arms else []
-        for arm, by_seed in arms.items():
-            if common:
-                fits.append(
-                    {"stage": stage, "arm": arm, "seeds": len(common)} | fit_summary([by_seed[s] for s in common])
-                )
-    holm_into([r for r in rows if r["primary"]], "p_success")
-    return rows, groups, fits, missing, paired_rows(loaded["placement"])
+    rows, groups = contrasts(COMPARISONS, loaded)
+    return rows, groups, stage_fits(loaded), missing, paired_rows(loaded["placement"])
 
 
 def paired_rows(placement: dict[str, dict[int, object]]) -> list[dict]:
@@ -400,27 +335,9 @@ def tuning_rows(ctx: Context) -> list[dict]:
     return rows
 
 
-def _comparison_lines(rows: Sequence[dict]) -> list[str]:
-    lines = [
-        "| comparison | pairs | success % T / B | Δ success [95% CI] | p | Holm p | MDE (80%) | T higher | Δ Fast20 "
-        "| Δ NEPS |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        ci = f"[{fmt_num(r['d_success_ci_low'], 2, True)}, {fmt_num(r['d_success_ci_high'], 2, True)}]"
-        lines.append(
-            f"| {r['comparison']} | {r['pairs']} "
-            f"| {fmt_num(r['success_treatment'])} / {fmt_num(r['success_baseline'])} "
-            f"| {fmt_num(r['d_success'], 2, True)} {ci} | {fmt_p(r['p_success'])} | {fmt_p(r.get('holm_p'))} "
-            f"| {fmt_num(r['mde_success'], 2)} | {r['higher']} of {r['pairs']} | {fmt_num(r['d_fast20'], 2, True)} "
-            f"| {fmt_num(r['d_neps'], 2, True)} |"
-        )
-    return lines
-
-
 def decision_markdown(rows, groups: pd.DataFrame, fits, tune: Sequence[dict], record, missing) -> str:
     """R6's comparisons, per-group rows, fit and weights, tuning grid and missing runs, as markdown."""
-    out = ["# Why does TAR help act? R6's comparisons", "", *_comparison_lines(rows), ""]
+    out = ["# Why does TAR help act? R6's comparisons", "", *comparison_lines(rows), ""]
     out += [
         "Success, Fast20 and NEPS in 100 x units; Δ = T - B over the seeds both arms have (lower Fast20/NEPS is "
         "better). Holm over R6's primary comparisons present (every row with a Holm p; `R6 tar - uniform` repeats R4 "
@@ -429,15 +346,8 @@ def decision_markdown(rows, groups: pd.DataFrame, fits, tune: Sequence[dict], re
         "",
         "## Success per difficulty group",
         "",
-        "| comparison | group | pairs | T % | B % | Δ [95% CI] | p |",
-        "|---|---|---|---|---|---|---|",
+        *group_lines(groups),
     ]
-    for g in groups.to_dict("records"):
-        ci = f"[{fmt_num(g['ci_low'], 2, True)}, {fmt_num(g['ci_high'], 2, True)}]"
-        out.append(
-            f"| {g['comparison']} | {g['level']} | {g['n_pairs']} | {fmt_num(g['objective_mean'])} "
-            f"| {fmt_num(g['baseline_mean'])} | {fmt_num(g['delta_mean'], 2, True)} {ci} | {fmt_p(g['p_value'])} |"
-        )
     if fits:
         out += ["", "## Arms: fit and weights", ""]
         out += fit_markdown(pd.DataFrame(fits), ["stage", "arm", "seeds"])
@@ -536,11 +446,7 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 def check_tree(tree: Path | None) -> Path | None:
     """The checkout ``--tree`` names, resolved; refused unless it holds tar-rl and its own ``.venv``."""
-    if tree is None:
-        return None
-    if not (tree / ".venv" / "bin" / "python").is_file() or not (tree / "tar_rl").is_dir():
-        raise SystemExit(f"why_act: --tree {tree} is not a checkout of tar-rl with its own .venv (.venv/bin/python)")
-    return tree.resolve()
+    return sweep.check_tree(tree, "why_act")
 
 
 def _with_options(sizes: WhySizes, args: argparse.Namespace) -> WhySizes:

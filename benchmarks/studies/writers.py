@@ -15,10 +15,12 @@ from tar_rl.report.tables import fmt_pm
 
 __all__ = [
     "TABLE_I_COLUMNS",
+    "comparison_lines",
     "controls_markdown",
     "fit_markdown",
     "fmt_num",
     "fmt_p",
+    "group_lines",
     "table_one_markdown",
     "write_outputs",
 ]
@@ -36,6 +38,38 @@ def fmt_p(p: float) -> str:
     if p is None or math.isnan(p):
         return "-"
     return "<0.001" if p < 0.001 else f"{p:.3f}"
+
+
+def comparison_lines(rows: Sequence[dict]) -> list[str]:
+    """A markdown table of :func:`~benchmarks.studies.compare.contrast` rows (with ``holm_p`` where a family has
+    one): pairs, success of both arms, Δ with its 95% CI, p, Holm p, MDE, pairs where T is higher, Δ Fast20 and NEPS."""
+    lines = [
+        "| comparison | pairs | success % T / B | Δ success [95% CI] | p | Holm p | MDE (80%) | T higher | Δ Fast20 "
+        "| Δ NEPS |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ci = f"[{fmt_num(r['d_success_ci_low'], 2, True)}, {fmt_num(r['d_success_ci_high'], 2, True)}]"
+        lines.append(
+            f"| {r['comparison']} | {r['pairs']} "
+            f"| {fmt_num(r['success_treatment'])} / {fmt_num(r['success_baseline'])} "
+            f"| {fmt_num(r['d_success'], 2, True)} {ci} | {fmt_p(r['p_success'])} | {fmt_p(r.get('holm_p'))} "
+            f"| {fmt_num(r['mde_success'], 2)} | {r['higher']} of {r['pairs']} | {fmt_num(r['d_fast20'], 2, True)} "
+            f"| {fmt_num(r['d_neps'], 2, True)} |"
+        )
+    return lines
+
+
+def group_lines(groups: pd.DataFrame) -> list[str]:
+    """A markdown table of the per-group rows of :func:`~benchmarks.studies.compare.contrast`."""
+    lines = ["| comparison | group | pairs | T % | B % | Δ [95% CI] | p |", "|---|---|---|---|---|---|---|"]
+    for g in groups.to_dict("records"):
+        ci = f"[{fmt_num(g['ci_low'], 2, True)}, {fmt_num(g['ci_high'], 2, True)}]"
+        lines.append(
+            f"| {g['comparison']} | {g['level']} | {g['n_pairs']} | {fmt_num(g['objective_mean'])} "
+            f"| {fmt_num(g['baseline_mean'])} | {fmt_num(g['delta_mean'], 2, True)} {ci} | {fmt_p(g['p_value'])} |"
+        )
+    return lines
 
 
 def fit_markdown(fit: pd.DataFrame, keys: Sequence[str]) -> list[str]:

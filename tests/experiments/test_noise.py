@@ -1,6 +1,9 @@
 """Two draws of a head's per-step losses (``python -m benchmarks.analysis noise``): the within-segment correlation
 and the top-step agreement against hand values, the segments, the presets' settings, and the command on tiny
-trained runs (a deterministic MLP loss agrees with itself exactly; a flow head's sampled time and noise do not)."""
+trained runs (a deterministic MLP loss agrees with itself exactly; a flow head's sampled time and noise do not);
+every ranking signal of the flow head (a deterministic draw agrees with itself for each; the action error's
+correlation recomputed from two ``inspect_steps`` passes; the warm-up of the time-normalised loss's running mean;
+a run with per-segment times reported once), ``octo_diffusion``, and the refusal of a signal a head lacks."""
 
 from __future__ import annotations
 
@@ -151,3 +154,152 @@ def test_the_command_line_writes_the_table(tiny_runs, tmp_path, capsys):
     markdown = out.with_suffix(".md").read_text()
     assert "| flow | 1 | 1 |" in markdown and "| mlp | 4 | 1 | 1.000 | 1.000 | 1.000 | 1.000 |" in markdown
     assert markdown in capsys.readouterr().out
+
+
+# -- Ranking signals -----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def signal_runs(tmp_path_factory) -> Path:
+    """Tiny finished uniform runs of the heads whose loss is sampled: flow with per-step times (seed 0), flow with
+    per-segment times (seed 1), octo_diffusion."""
+    from tar_rl.recipes import train
+
+    tmp = tmp_path_factory.mktemp("signals")
+    data = tmp_path_factory.mktemp("signals_data")
+    for overrides in (
+        ("policy=flow",),
+        ("policy=flow", "policy.time_sampling=segment", "seed=1"),
+        ("policy=octo_diffusion",),
+    ):
+        train(
+            tiny(tmp, data, "objective=uniform", *overrides, "diagnostics.heldout_demos=0", "logging.record_episodes=2")
+        )
+    return tmp / "runs"
+
+
+def _named(folder: Path, prefix: str, seed: int) -> str:
+    return next(p.name for p in folder.iterdir() if p.name.startswith(f"{prefix}-s{seed}-"))
+
+
+def _fixed_draw(self, actions, lead):
+    """A flow head's draw that depends on the chunk only: the same time and noise in every pass."""
+    import torch
+
+    tau = 0.001 + 0.999 * torch.sigmoid(3.0 * actions.sum((-2, -1)))
+    return tau, torch.cos(5.0 * actions)
+
+
+@pytest.mark.slow
+def test_every_signal_of_a_deterministic_draw_agrees_with_itself(signal_runs, monkeypatch):
+    """With the flow head's time and noise fixed by the chunk, both draws of every signal are equal: correlation 1,
+    the same top step, the same weights (the time-normalised loss's running mean does not move between draws)."""
+    from tar_rl.policies.flow import FlowPolicy
+
+    monkeypatch.setattr(FlowPolicy, "draw", _fixed_draw)
+    names = [_named(signal_runs, "uniform-flow", 0), _named(signal_runs, "uniform-flow", 1)]
+    table = noise.noise_table(signal_runs, signals=["all"], names=names)
+    assert list(table.columns) == list(noise.SIGNAL_COLUMNS)
+    measured = list(zip(table["time_sampling"], table["signal"], strict=True))
+    assert measured == [("step", "loss"), ("step", "action_error"), ("step", "time_normalized"), ("segment", "loss")]
+    for column in noise.SIGNAL_MEASURES:
+        assert table[column].tolist() == pytest.approx([1.0] * 4, abs=1e-9), column
+
+
+def _by_hand(objective, episodes, slice_len: int, seed: int):
+    """One pass of ``objective.inspect_steps`` along each episode after ``torch.manual_seed(seed)``, its ranked
+    values cut into consecutive segments of ``slice_len`` (the last one shorter)."""
+    import torch
+
+    objective.train()
+    rows, masks = [], []
+    with torch.no_grad():
+        torch.manual_seed(seed)
+        for _, _, td in episodes:
+            ranked = objective.inspect_steps(td.unsqueeze(0))[2][0].double().numpy()
+            for start in range(0, len(ranked), slice_len):
+                part = ranked[start : start + slice_len]
+                rows.append(np.concatenate([part, np.zeros(slice_len - len(part))]))
+                masks.append([i < len(part) for i in range(slice_len)])
+    return np.array(rows), np.array(masks)
+
+
+@pytest.mark.slow
+def test_the_action_errors_correlation_is_that_of_two_inspect_steps_passes(tiny_runs):
+    """The command's ``signal_r`` of ``action_error``: two passes (torch seeds 0 and 1) of an objective built with
+    ``objective.signal=action_error`` on the run's policy, compared by hand; it is not the loss's."""
+    from dataclasses import replace
+
+    from benchmarks.analysis.rebuild import rebuild_final
+    from tar_rl.recipes.builders import make_objective
+    from tar_rl.report import load_run
+
+    name = _named(tiny_runs, "uniform-flow", 0)
+    table = noise.noise_table(tiny_runs, signals=["loss", "action_error"], names=[name])
+    rows = {r["signal"]: r for r in table.to_dict("records")}
+    rebuilt = rebuild_final(load_run(tiny_runs / name), None, {}, "test")
+    cfg = rebuilt.cfg
+    objective = make_objective(replace(cfg.objective, signal="action_error"), cfg.optim.steps, cfg.seed, rebuilt.policy)
+    (a, valid), (b, _) = (_by_hand(objective, rebuilt.episodes, cfg.data.slice_len, seed) for seed in (0, 1))
+    assert rows["action_error"]["signal_r"] == pytest.approx(within_segment_correlation(a, b, valid), abs=1e-12)
+    assert rows["action_error"]["top_agree"] == pytest.approx(top_step_agreement(a, b, valid), abs=1e-12)
+    assert rows["action_error"]["signal_r"] != pytest.approx(rows["loss"]["signal_r"], abs=1e-6)
+
+
+@pytest.mark.slow
+def test_the_running_mean_is_warmed_up_deterministically_on_the_recorded_segments(tiny_runs):
+    """``warm_up``: one update a batch of ``data.batch_segments`` segments per pass, the parameters untouched, the
+    bias-corrected weight of a bin at most ``1 - 0.99 ** updates``, the same state from the same seed."""
+    import math
+
+    import torch
+
+    from benchmarks.analysis.rebuild import rebuild_final
+    from tar_rl.report import load_run
+
+    rebuilt = rebuild_final(load_run(tiny_runs / _named(tiny_runs, "uniform-flow", 0)), None, {}, "test")
+    cfg = rebuilt.cfg
+    pieces = noise.recorded_segments(rebuilt.episodes, cfg.data.slice_len)
+    assert len(pieces) == 13  # the two recorded demonstrations' segments, as the table counts them
+    before = {k: v.clone() for k, v in rebuilt.policy.loss.state_dict().items()}
+    states = []
+    for _ in range(2):
+        objective = rebuilt.objective_with("time_normalized")
+        state = objective.clean_inner.signal_state
+        assert float(state.weight.sum()) == 0.0
+        updates = noise.warm_up(objective, pieces, cfg.data.batch_segments, passes=3)
+        assert updates == 3 * math.ceil(13 / cfg.data.batch_segments)  # 3 passes of 2 batches of 8 and 5
+        assert 0.0 < float(state.weight.max()) <= 1 - 0.99**updates + 1e-12
+        states.append(state.total.clone())
+    torch.testing.assert_close(states[0], states[1], rtol=0, atol=0)
+    after = rebuilt.policy.loss.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert all(p.requires_grad for p in rebuilt.policy.loss.parameters())
+
+
+@pytest.mark.slow
+def test_a_run_with_per_segment_times_is_reported_once_and_octo_diffusion_measured(signal_runs):
+    table = noise.noise_table(signal_runs, signals=["all"])
+    rows = list(zip(table["head"], table["time_sampling"], table["signal"], strict=True))
+    assert rows == [
+        ("flow", "step", "loss"),
+        ("flow", "step", "action_error"),
+        ("flow", "step", "time_normalized"),
+        ("flow", "segment", "loss"),
+        ("octo_diffusion", "step", "loss"),
+    ]
+    diffusion = table[table["head"] == "octo_diffusion"].iloc[0]
+    assert diffusion["signal_r"] < 0.99  # its per-step loss is a draw of a diffusion time and noise
+    segment = table[table["time_sampling"] == "segment"].iloc[0]
+    assert segment["segments"] == 13 and segment["steps"] == 95  # the same segments as the per-step runs'
+
+
+@pytest.mark.slow
+def test_a_signal_the_head_does_not_offer_is_refused_naming_the_head_and_its_signals(tiny_runs, tmp_path):
+    with pytest.raises(SystemExit, match=r"the mlp head offers the ranking signals \['loss'\], not 'action_error'"):
+        noise.noise_main(["--from", str(tiny_runs), "--signals", "action_error", "--out", str(tmp_path / "n.csv")])
+    assert not (tmp_path / "n.csv").exists()
+    with pytest.raises(SystemExit, match=r"offers the ranking signals \['loss', 'action_error', 'time_normalized'\]"):
+        noise.noise_table(tiny_runs, signals=["velocity"], names=[_named(tiny_runs, "uniform-flow", 0)])
+    with pytest.raises(SystemExit, match=r"absent-run: not a finished uniform run"):
+        noise.noise_table(tiny_runs, names=["absent-run"])
