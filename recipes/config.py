@@ -191,8 +191,9 @@ class DataConfig:
         n_demos: successful demonstrations per task.
         seed: base seed of the demonstration variations (must differ from ``eval.seed``'s range).
         root: folder of the dataset cache (a dataset is reused when its settings match).
-        slice_len: segment length ``L``, at most the dataset's longest episode (checked once the dataset is
-            loaded: a longer segment would be padded in every batch).
+        slice_len: segment length ``L``, at most the dataset's longest episode (checked before collecting against
+            the suite's longest possible episode, and once the dataset is loaded against its own: a longer segment
+            would be padded in every batch).
         batch_segments: segments per batch ``B`` (a batch holds ``B * L`` steps).
         chunk_horizon: ``H`` of the stored ``action_chunk`` (for chunked heads).
         history: ``K`` of the stored ``observation_history`` (for heads reading past observations).
