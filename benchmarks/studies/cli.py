@@ -19,7 +19,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -104,6 +104,13 @@ def ints(text: str) -> tuple[int, ...]:
     if not values:
         raise argparse.ArgumentTypeError("expected at least one integer")
     return values
+
+
+def with_seeds(sizes: Any, args: argparse.Namespace) -> Any:
+    """``sizes`` whose scale trains ``--seeds`` where given (the studies whose only option that is)."""
+    if args.seeds is None:
+        return sizes
+    return replace(sizes, scale=replace(sizes.scale, seeds=args.seeds))
 
 
 def names(text: str) -> tuple[str, ...]:

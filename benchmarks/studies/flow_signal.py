@@ -39,13 +39,13 @@ import math
 import subprocess
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
 from benchmarks.studies import sweep
-from benchmarks.studies.cli import Context, Study
+from benchmarks.studies.cli import Context, Study, with_seeds
 from benchmarks.studies.compare import FINAL_SHARE, Comparison, check_pairs, contrasts, finished_runs, stage_fits
 from benchmarks.studies.core import Arm, Scale, Spec, Stage, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS
@@ -517,19 +517,11 @@ def table(ctx: Context) -> None:
 
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--complete", action="store_true", help="table: refuse a stage with a run of its plan missing")
-    p.add_argument(
-        "--tree",
-        type=Path,
-        default=None,
-        help="run: train (and select: analyse) with this checkout's code (a git worktree at R7's commit, with its "
+    sweep.add_tree_option(
+        p,
+        "run: train (and select: analyse) with this checkout's code (a git worktree at R7's commit, with its "
         "own .venv)",
     )
-
-
-def _with_options(sizes: SignalSizes, args: argparse.Namespace) -> SignalSizes:
-    if args.seeds is None:
-        return sizes
-    return replace(sizes, scale=replace(sizes.scale, seeds=args.seeds))
 
 
 def keep_weights(ctx: Context) -> list[str]:
@@ -548,6 +540,6 @@ STUDY = Study(
     table=table,
     results=lambda scale: "regimes/r7" if scale == "cpu" else None,
     options=_options,
-    with_options=_with_options,
+    with_options=with_seeds,
     keep_weights=keep_weights,
 )

@@ -26,12 +26,12 @@ import argparse
 import hashlib
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.studies.cli import Context, Study, ints, tables_dir
+from benchmarks.studies.cli import Context, Study, ints, tables_dir, with_seeds
 from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS, EIGHT_TASKS, PAIR, SOURCE_TASKS
 from benchmarks.studies.records import check_stage_plan, check_started, provenance, read_json
@@ -428,12 +428,6 @@ def _options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _with_options(sizes: RegimeSizes, args: argparse.Namespace) -> RegimeSizes:
-    if args.seeds is None:
-        return sizes
-    return replace(sizes, scale=replace(sizes.scale, seeds=args.seeds))
-
-
 STUDY = Study(
     name="regimes",
     about="The pre-registered regime study: runs and tables.",
@@ -444,7 +438,7 @@ STUDY = Study(
     table=table,
     results=lambda scale: "regimes" if scale == "cpu" else None,
     options=_options,
-    with_options=_with_options,
+    with_options=with_seeds,
     keep_checkpoint=lambda ctx: [source_spec(ctx.sizes, ctx.planner).run_dir.name],
     keep_weights=lambda ctx: weights_read(ctx.sizes, ctx.planner),
 )

@@ -17,6 +17,11 @@ from benchmarks.studies.core import Scale, Spec
 __all__ = ["check_tree", "estimate_seconds", "execute"]
 
 
+def add_tree_option(parser, help_text: str) -> None:
+    """The ``--tree DIR`` option of a study whose runs train with another checkout's code (:func:`check_tree`)."""
+    parser.add_argument("--tree", type=Path, default=None, help=help_text)
+
+
 def check_tree(tree: Path | None, who: str) -> Path | None:
     """The checkout ``--tree`` names (another checkout's code trains the runs), resolved; refused unless it holds
     tar-rl and its own ``.venv`` (``who`` names the study in the refusal)."""

@@ -25,13 +25,13 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
 from benchmarks.studies import sweep
-from benchmarks.studies.cli import Context, Study
+from benchmarks.studies.cli import Context, Study, with_seeds
 from benchmarks.studies.compare import (
     FINAL_SHARE,
     Comparison,
@@ -436,23 +436,14 @@ def table(ctx: Context) -> None:
 
 def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--complete", action="store_true", help="table: refuse a stage with a run of its plan missing")
-    p.add_argument(
-        "--tree",
-        type=Path,
-        default=None,
-        help="run: train with this checkout's code (a git worktree at the study's commit, with its own .venv)",
+    sweep.add_tree_option(
+        p, "run: train with this checkout's code (a git worktree at the study's commit, with its own .venv)"
     )
 
 
 def check_tree(tree: Path | None) -> Path | None:
     """The checkout ``--tree`` names, resolved; refused unless it holds tar-rl and its own ``.venv``."""
     return sweep.check_tree(tree, "why_act")
-
-
-def _with_options(sizes: WhySizes, args: argparse.Namespace) -> WhySizes:
-    if args.seeds is None:
-        return sizes
-    return replace(sizes, scale=replace(sizes.scale, seeds=args.seeds))
 
 
 def keep_weights(ctx: Context) -> list[str]:
@@ -473,6 +464,6 @@ STUDY = Study(
     table=table,
     results=lambda scale: "regimes/r6" if scale == "cpu" else None,
     options=_options,
-    with_options=_with_options,
+    with_options=with_seeds,
     keep_weights=keep_weights,
 )
