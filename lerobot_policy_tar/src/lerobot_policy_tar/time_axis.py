@@ -11,8 +11,10 @@ end), plus, for ACT, a per-item regulariser ``[N]`` (the VAE's KL term). From it
 * ``chunk`` mode: ``N = B`` and TAR weights the ``H`` entries of each chunk (each the mean over the action dims),
   a reinterpretation of the paper's time axis that costs nothing extra.
 
-The item's loss is the TAR-weighted mean over its valid steps plus the mean of the regulariser over them: the
-regulariser is not an imitation loss and is not reweighted. Items come back as ``[B]``, so LeRobot's own sample
+TAR's weights rank the steps by their losses or, for a sampled loss, by a ranking signal of the same draw
+(``policy.tar.signal``, :func:`ranking_signal`); either way they weight the losses. The item's loss is the
+TAR-weighted mean over its valid steps plus the mean of the regulariser over them: the regulariser is not an
+imitation loss and is not reweighted. Items come back as ``[B]``, so LeRobot's own sample
 weights (``reduction="none"``) multiply them as they multiply any policy's per-sample loss. Beside it the reduction
 gives the same items' uniform loss (every valid step weighted 1) and the weights' effective sample size, so a run's
 log compares with the base policy's.
