@@ -43,7 +43,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..objectives.signals import TIME_BINS, TIME_DECAY, TimeNormalizer
+from tar_rl.objectives.signals import TIME_BINS, TIME_DECAY, TimeNormalizer
+
 from .base import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import TIME, chunked_policy
 from .octo import OctoConfig, SeededSampling, TransformerBlock, check_chunk_shape, hold_last_valid, sinusoidal_embedding
