@@ -57,18 +57,23 @@ def load_and_act(checkpoint: Path, dataset: Path, policy_class) -> torch.Tensor:
     with torch.no_grad():
         action = postprocessor(policy.select_action(preprocessor(observation)))
     assert int(policy.tar_step) == STEPS  # the schedule's count is saved with the weights
+    if policy.config.tar.signal == "time_normalized":  # and the signal's running means per time bin
+        assert policy.tar_normalizer.weight.sum() > 0
     return action
 
 
 # act_tar on a state dataset: test_walkthrough.py (the page's commands); act_tar's images: smolvla_tar's run below
-# folds images of one observation step as ACT does, and test_policies.py checks ACT's image loss in process.
+# folds images of one observation step as ACT does, and test_policies.py checks ACT's image loss in process. The
+# diffusion run ranks by time_normalized, whose running means the checkpoint holds.
 @pytest.mark.parametrize("policy_type", ["diffusion_tar"])
 @pytest.mark.parametrize("data", ["image"])
 def test_lerobot_train_runs_saves_and_the_checkpoint_acts(policy_type, data, request, tmp_path):
     from lerobot_policy_tar.modeling_tar import ACTTARPolicy, DiffusionTARPolicy
 
     dataset = request.getfixturevalue(f"{data}_dataset")
-    done = lerobot_train(dataset, tmp_path / "out", policy_type, *TINY[policy_type])
+    done = lerobot_train(
+        dataset, tmp_path / "out", policy_type, *TINY[policy_type], "--policy.tar.signal=time_normalized"
+    )
     assert done.returncode == 0, done.stderr[-4000:]
     assert f"step:{STEPS} " in done.stderr and "tar_mix:1.000" in done.stderr, done.stderr[-4000:]
     checkpoint = tmp_path / "out" / "checkpoints" / "last" / "pretrained_model"

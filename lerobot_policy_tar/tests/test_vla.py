@@ -130,3 +130,37 @@ def test_smolvla_tar_is_smolvlas_masked_loss_before_tar_starts_and_trains_after(
     assert info["tar_mix"] == 1.0
     loss.backward()
     assert all(torch.isfinite(p.grad).all() for p in policy.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("kind", ["pi0", "pi05", "smolvla"])
+def test_the_action_error_signal_is_the_error_of_the_chunk_the_velocity_implies(tiny_pi, smolvlm, kind):
+    """On the draw LeRobot's model sees (its noisy chunk ``x_t``, its time ``t``, its velocity ``v``): the implied
+    chunk is ``x_t - t * v`` (openpi's ``x_t = t * noise + (1 - t) * A``), its squared error the signal, and the time's
+    quantile ``((t - 0.001) / 0.999) ** 1.5`` (Beta(1.5, 1)); TAR then trains on it."""
+    config_class, policy_class = {
+        "pi0": (PI0TARConfig, PI0TARPolicy),
+        "pi05": (PI05TARConfig, PI05TARPolicy),
+        "smolvla": (SmolVLATARConfig, SmolVLATARPolicy),
+    }[kind]
+    config = pi_config(config_class, time_axis="chunk", signal="action_error")
+    if kind == "smolvla":
+        config.vlm_model_name, config.load_vlm_weights, config.num_vlm_layers = str(smolvlm), False, 2
+        config.resize_imgs_with_padding = (IMAGE, IMAGE)
+    torch.manual_seed(0)
+    policy = policy_class(config)
+    model, seen = policy.model, {}
+    embed_suffix, sample_time = model.embed_suffix, model.sample_time
+    model.embed_suffix = lambda *args: (seen.update(x_t=args[-2].detach()), embed_suffix(*args))[1]
+    model.sample_time = lambda *args: seen.setdefault("t", sample_time(*args))
+    model.action_out_proj.register_forward_hook(lambda module, args, out: seen.update(v=out.detach()))
+    batch = pi_batch(config, 3, vocab=9 if kind == "smolvla" else 1000, pad_from=3)
+    element = policy.element_losses(batch)
+    t = seen["t"][:, None, None]
+    implied = seen["x_t"] - t * seen["v"]
+    actions = policy.prepare_action(batch)
+    expected = (implied - actions).square()[:, :, :ACTION_DIM]
+    torch.testing.assert_close(element.action_error, expected, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(element.quantile, ((seen["t"] - 0.001) / 0.999).clamp(0, 1) ** 1.5)
+    loss, info = policy.forward(batch)
+    assert info["tar_mix"] == 1.0 and torch.isfinite(loss)
+    loss.backward()

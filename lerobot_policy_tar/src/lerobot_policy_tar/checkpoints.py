@@ -1,10 +1,11 @@
 """Checkpoints between a TAR policy and its base policy: ``lerobot-tar to-base`` and ``lerobot-tar to-tar``.
 
 A TAR policy's network, processors and inference are its base policy's; only its config (the type ``act_tar`` and
-the ``tar`` settings) and the schedule's count ``tar_step`` differ. So:
+the ``tar`` settings), the schedule's count ``tar_step`` and, with ``policy.tar.signal=time_normalized``, the
+running means ``tar_normalizer`` differ. So:
 
 * :func:`to_base` writes a ``*_tar`` checkpoint as its base type (``act``, ``diffusion``, ...): the base config
-  with every base field kept, the same weights without ``tar_step``, the same processors. Any LeRobot loads it and
+  with every base field kept, the same weights without TAR's state, the same processors. Any LeRobot loads it and
   acts exactly as the TAR checkpoint does; a robot needs neither the plugin nor tar-rl.
 * :func:`to_tar` writes a base checkpoint (a pretrained ``smolvla``, an ``act`` of your own) as its TAR type with
   the schedule at step 0, so that ``lerobot-train --policy.path=...`` post-trains it with TAR: LeRobot reads a
@@ -80,7 +81,8 @@ def _convert(src: Path, out: Path, config) -> Path:
 
     policy = get_policy_class(config.type)(config)
     missing, unexpected = load_model(policy, str(src / WEIGHTS_FILE), strict=False)
-    unexpected = [key for key in unexpected if key != "tar_step"]  # a TAR checkpoint's count, dropped for a base
+    # a TAR checkpoint's count and running means per time bin (time_normalized), dropped for a base
+    unexpected = [key for key in unexpected if key != "tar_step" and not key.startswith("tar_normalizer.")]
     if missing or unexpected:
         raise CheckpointError(
             f"{src / WEIGHTS_FILE} does not fit a {config.type!r} policy of its own config: missing "

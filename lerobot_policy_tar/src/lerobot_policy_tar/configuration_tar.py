@@ -23,6 +23,7 @@ from .tar_source import DEFAULT_EPS, DEFAULT_GAMMA, DEFAULT_W_MAX, MixSchedule, 
 __all__ = [
     "BASES",
     "PI0_FAST_REFUSAL",
+    "SAMPLED_SIGNALS",
     "TIME_AXES",
     "ACTTARConfig",
     "DiffusionTARConfig",
@@ -36,6 +37,11 @@ __all__ = [
 #: ``segment``: the paper's time axis, ``slice_len`` consecutive observation steps, each with its own chunk.
 #: ``chunk``: the entries of one action chunk (one observation step), a cheaper reinterpretation.
 TIME_AXES: tuple[str, ...] = ("segment", "chunk")
+
+#: The ranking signals of a policy whose loss is one draw of a time (noise level) and a noise: besides the loss,
+#: ``action_error`` (the error of the action chunk its prediction implies) and ``time_normalized`` (the loss over a
+#: running mean of the loss at its time). ACT's loss is not sampled: it offers ``loss`` alone.
+SAMPLED_SIGNALS: tuple[str, ...] = ("loss", "action_error", "time_normalized")
 
 PI0_FAST_REFUSAL = (
     "pi0_fast is not supported by TAR: its loss is a cross-entropy over FAST tokens, which encode a whole action "
@@ -59,6 +65,10 @@ class TARSettings:
             (weights over the entries of one action chunk).
         slice_len: the segment length ``L`` of ``segment`` mode (each item of a batch holds ``L`` observation steps,
             so the base model sees ``L`` times the batch); at most the dataset's longest episode.
+        signal: what the weights rank the steps by (tar-rl's ``objective.signal``): ``loss``, the per-step loss
+            itself; for a policy whose loss is one random draw of a time and a noise (diffusion, SmolVLA, pi0,
+            pi0.5) also ``action_error`` or ``time_normalized`` (docs/lerobot.md). The loss the weights multiply
+            is the policy's own in every case.
     """
 
     gamma: float = DEFAULT_GAMMA
@@ -70,6 +80,7 @@ class TARSettings:
     shape: str = "linear"
     time_axis: str = "segment"
     slice_len: int = 16
+    signal: str = "loss"
 
     def validate(self) -> None:
         """Raise a ``ValueError`` naming the first setting out of range.
@@ -102,9 +113,17 @@ class TARConfigMixin:
 
     tar: TARSettings = field(default_factory=TARSettings)
 
+    #: The values of ``tar.signal`` this policy offers (``loss`` first).
+    tar_signals = ("loss",)
+
     def check_tar(self) -> None:
         """Raise a ``ValueError`` naming a TAR setting this policy cannot train with."""
         self.tar.validate()
+        if self.tar.signal not in self.tar_signals:
+            raise ValueError(
+                f"policy.tar.signal={self.tar.signal!r} is not offered by {self.type}: it offers "
+                f"{list(self.tar_signals)}."
+            )
 
     def validate_features(self) -> None:
         self.check_tar()
@@ -136,6 +155,17 @@ class TARConfigMixin:
         return list(range(min(base), max(base) + extra + 1))
 
 
+def check_time_quantile(config) -> None:
+    """Refuse ``time_normalized`` for pi0 or pi0.5 drawing their flow time from a Beta(alpha, beta) with
+    ``beta != 1``: the signal bins a time by its quantile, ``u ** alpha`` for ``Beta(alpha, 1)``."""
+    beta = config.time_sampling_beta_beta
+    if config.tar.signal == "time_normalized" and beta != 1:
+        raise ValueError(
+            f"policy.tar.signal='time_normalized' bins {config.type}'s flow times by their quantile under "
+            f"Beta(alpha, 1): it needs policy.time_sampling_beta_beta=1 (the default), got {beta!r}."
+        )
+
+
 @PreTrainedConfig.register_subclass("act_tar")
 @dataclass
 class ACTTARConfig(TARConfigMixin, ACTConfig):
@@ -147,17 +177,27 @@ class ACTTARConfig(TARConfigMixin, ACTConfig):
 class DiffusionTARConfig(TARConfigMixin, DiffusionConfig):
     """LeRobot's Diffusion Policy trained with TAR (``--policy.type=diffusion_tar``); padding is always masked."""
 
+    tar_signals = SAMPLED_SIGNALS
+
 
 @PreTrainedConfig.register_subclass("smolvla_tar")
 @dataclass
 class SmolVLATARConfig(TARConfigMixin, SmolVLAConfig):
     """LeRobot's SmolVLA trained with TAR (``--policy.type=smolvla_tar``)."""
 
+    tar_signals = SAMPLED_SIGNALS
+
 
 @PreTrainedConfig.register_subclass("pi0_tar")
 @dataclass
 class PI0TARConfig(TARConfigMixin, PI0Config):
     """LeRobot's pi0 trained with TAR (``--policy.type=pi0_tar``); padded chunk entries are masked."""
+
+    tar_signals = SAMPLED_SIGNALS
+
+    def check_tar(self) -> None:
+        super().check_tar()
+        check_time_quantile(self)
 
 
 @PreTrainedConfig.register_subclass("pi05_tar")
@@ -167,9 +207,11 @@ class PI05TARConfig(TARConfigMixin, PI05Config):
     preprocessor writes the state of one observation step into the prompt)."""
 
     tar: TARSettings = field(default_factory=lambda: TARSettings(time_axis="chunk"))
+    tar_signals = SAMPLED_SIGNALS
 
     def check_tar(self) -> None:
         super().check_tar()
+        check_time_quantile(self)
         if self.tar.time_axis == "segment" and self.tar.slice_len > 1:
             raise ValueError(
                 "pi05_tar supports policy.tar.time_axis=chunk only: pi0.5's preprocessor writes one observation "

@@ -5,6 +5,12 @@ A TAR policy is its base policy (same network, processors, inference and checkpo
 comes from, :meth:`element_losses`: the base's own loss up to the point where it reduces (LeRobot's
 ``policy.forward`` returns a scalar).
 
+Diffusion, SmolVLA, pi0 and pi0.5 compute their loss at one random draw of a time (noise level) and a noise; their
+element losses also carry, from the same draw, the error of the action chunk the prediction implies
+(:func:`flow_action_error`, :func:`diffusion_action_error`) and the draw's quantile, which ``policy.tar.signal``
+may rank the steps by instead of the loss (``action_error``, ``time_normalized``; the loss weighted is the
+policy's own either way).
+
 The forward's log (LeRobot prints every number of it at ``--log_freq``) holds the TAR-weighted loss and, for
 comparison with the base policy's run, the uniform loss of the same batch, the base policy's own sub-losses (ACT's
 ``l1_loss`` and ``kld_loss``), the weights' ESS and largest value, and the epochs in the base policy's count of
@@ -26,9 +32,20 @@ from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_LANGUAGE_ATTENTION_M
 from torch import Tensor
 
 from .configuration_tar import ACTTARConfig, DiffusionTARConfig, PI0TARConfig, PI05TARConfig, SmolVLATARConfig
+from .tar_source import TimeNormalizer
 from .time_axis import ElementLosses, effective_sample_size, fold_segments, reduce_over_time
 
-__all__ = ["ACTTARPolicy", "DiffusionTARPolicy", "PI0TARPolicy", "PI05TARPolicy", "SmolVLATARPolicy", "TARPolicyMixin"]
+__all__ = [
+    "ACTTARPolicy",
+    "DiffusionTARPolicy",
+    "PI0TARPolicy",
+    "PI05TARPolicy",
+    "SmolVLATARPolicy",
+    "TARPolicyMixin",
+    "diffusion_action_error",
+    "flow_action_error",
+    "flow_quantile",
+]
 
 REDUCTIONS = ("mean", "none")
 
@@ -51,10 +68,61 @@ def _entry_valid(batch: dict[str, Any], loss: Tensor) -> Tensor:
     return torch.ones(loss.shape[:2], dtype=torch.bool, device=loss.device) if is_pad is None else ~is_pad
 
 
-def _fill_missing_tar_step(module, state_dict, prefix, *args) -> None:
+def _fill_missing_tar_state(module, state_dict, prefix, *args) -> None:
     """A state dict without ``tar_step`` (a base policy's checkpoint: post-training starts from one) loads with the
-    schedule at step 0 instead of LeRobot's warning about a missing key."""
+    schedule at step 0 instead of LeRobot's warning about a missing key; without ``tar_normalizer``'s running
+    means, with them empty."""
     state_dict.setdefault(prefix + "tar_step", torch.zeros((), dtype=torch.long))
+    normalizer = getattr(module, "tar_normalizer", None)
+    if normalizer is not None:
+        for name, value in normalizer.state_dict().items():
+            state_dict.setdefault(f"{prefix}tar_normalizer.{name}", torch.zeros_like(value))
+
+
+def flow_action_error(loss: Tensor, time: Tensor) -> Tensor:
+    """``[N, H, A]``: the squared error of the chunk a flow-matching velocity implies, from its velocity loss
+    ``loss`` ``[N, H, A]`` at the times ``time`` ``[N]``, detached.
+
+    LeRobot's pi0, pi0.5 and SmolVLA follow openpi: ``x_t = t * noise + (1 - t) * A`` (``t = 1`` is noise) and the
+    target velocity is ``u = noise - A``, so ``A = x_t - t * u``; the velocity ``v`` implies ``A_hat = x_t - t * v``
+    and ``A_hat - A = t * (u - v)``: per element ``(A_hat - A) ** 2 = t ** 2 * (v - u) ** 2``.
+    """
+    return time.detach()[:, None, None].square() * loss.detach()
+
+
+def flow_quantile(time: Tensor, alpha: float, scale: float, offset: float) -> Tensor:
+    """``[N]``: the quantile of each time ``t = scale * b + offset`` with ``b ~ Beta(alpha, 1)`` (openpi's draw),
+    ``((t - offset) / scale) ** alpha`` (the Beta's CDF), clamped to ``[0, 1]``."""
+    return ((time.detach() - offset) / scale).clamp(0.0, 1.0).pow(alpha)
+
+
+def diffusion_action_error(
+    pred: Tensor,
+    eps: Tensor,
+    trajectory: Tensor,
+    alpha_bar: Tensor,
+    prediction_type: str,
+    clip_range: float | None,
+) -> Tensor:
+    """``[N, H, A]``: the squared error of the clean chunk ``x0_hat`` a denoiser's prediction implies, detached.
+
+    ``trajectory`` ``[N, H, A]`` is the clean chunk, noised as ``x_t = sqrt(a) * x0 + sqrt(1 - a) * eps`` with ``a``
+    the cumulative ``alpha_bar`` ``[N]`` of each item's timestep (DDPM and DDIM alike). An ``epsilon`` prediction
+    ``pred`` implies ``x0_hat = (x_t - sqrt(1 - a) * pred) / sqrt(a) = x0 - sqrt((1 - a) / a) * (pred - eps)``, so
+    unclipped the error is ``(1 - a) / a`` times the noise loss; a ``sample`` prediction is ``x0_hat`` itself. With
+    ``clip_range`` (the scheduler's ``clip_sample``), ``x0_hat`` is clipped to ``[-clip_range, clip_range]`` first,
+    as the sampler's step clips it: at the noisiest timesteps ``(1 - a) / a`` reaches about ``4e6`` (LeRobot's
+    default 100-step cosine schedule) and the unclipped error is mostly the noise loss magnified.
+    """
+    pred, eps, trajectory = pred.detach(), eps.detach(), trajectory.detach()
+    if prediction_type == "epsilon":
+        a = alpha_bar.detach().to(pred.dtype)[:, None, None]
+        x0 = trajectory - ((1 - a) / a).sqrt() * (pred - eps)
+    else:
+        x0 = pred
+    if clip_range is not None:
+        x0 = x0.clamp(-clip_range, clip_range)
+    return (x0 - trajectory).square()
 
 
 def _world_size() -> int:
@@ -62,12 +130,26 @@ def _world_size() -> int:
     return torch.distributed.get_world_size() if distributed else 1
 
 
+def _flow_losses(loss: Tensor, valid: Tensor, time: Tensor, alpha: float, scale: float, offset: float):
+    """A flow-matching policy's element losses at the times ``time`` ``[N]`` drawn as ``Beta(alpha, 1) * scale +
+    offset``, with their action errors and the times' quantiles."""
+    quantile = flow_quantile(time, alpha, scale, offset)
+    return ElementLosses(loss, valid, action_error=flow_action_error(loss, time), quantile=quantile)
+
+
+def _pi_time_draw(config) -> tuple[float, float, float]:
+    """pi0's and pi0.5's time draw as (alpha, scale, offset); its Beta's ``beta`` is 1 where a signal reads the
+    quantile (``time_normalized``, checked by the config)."""
+    return config.time_sampling_beta_alpha, config.time_sampling_scale, config.time_sampling_offset
+
+
 class TARPolicyMixin:
     """The training forward of every TAR policy (the first base of each; the second is the LeRobot policy).
 
     The policy counts its training forwards in the buffer ``tar_step`` (saved with the weights, so a resumed run
     continues TAR's schedule; a checkpoint without it, a base policy's, starts it at 0) and reads ``policy.tar``
-    (:class:`~lerobot_policy_tar.configuration_tar.TARSettings`).
+    (:class:`~lerobot_policy_tar.configuration_tar.TARSettings`). With ``policy.tar.signal=time_normalized`` its
+    running means per time bin are the submodule ``tar_normalizer``, saved and resumed the same way.
     """
 
     #: The base policy's name for the mean of its element losses over the real entries (ACT: ``l1_loss``), logged.
@@ -78,7 +160,10 @@ class TARPolicyMixin:
         check_segment_fits(config, dataset_meta)
         super().__init__(config, **kwargs)
         self.register_buffer("tar_step", torch.zeros((), dtype=torch.long))
-        self.register_load_state_dict_pre_hook(_fill_missing_tar_step)
+        if config.tar.signal == "time_normalized":
+            #: The running mean of the loss per time bin (tar-rl's): saved with the weights, as ``tar_step`` is.
+            self.tar_normalizer = TimeNormalizer()
+        self.register_load_state_dict_pre_hook(_fill_missing_tar_state)
         #: The dataset's frames, for ``tar_epochs`` (unknown without the dataset: at inference).
         self.tar_dataset_frames = None if dataset_meta is None else int(dataset_meta.total_frames)
 
@@ -108,7 +193,16 @@ class TARPolicyMixin:
         mix = tar.schedule(self.tar_step)
         element = self.element_losses(batch)
         out = reduce_over_time(
-            element, segments=segments, gamma=tar.gamma, w_max=tar.w_max, eps=tar.eps, cap=tar.cap, mix=mix
+            element,
+            segments=segments,
+            gamma=tar.gamma,
+            w_max=tar.w_max,
+            eps=tar.eps,
+            cap=tar.cap,
+            mix=mix,
+            signal=tar.signal,
+            normalizer=getattr(self, "tar_normalizer", None),
+            update=self.training,
         )
         if self.training:
             self.tar_step += 1
@@ -165,7 +259,8 @@ class ACTTARPolicy(TARPolicyMixin, ACTPolicy):
 
 class DiffusionTARPolicy(TARPolicyMixin, DiffusionPolicy):
     """Diffusion Policy with TAR: the denoising MSE per horizon entry and action dim (``DiffusionModel.compute_loss``
-    before its mean), padding always masked."""
+    before its mean), padding always masked. Its draw: the timestep, uniform over the scheduler's
+    ``num_train_timesteps``, and the noise; its action error is the clean chunk's (:func:`diffusion_action_error`)."""
 
     config_class = DiffusionTARConfig
     name = "diffusion_tar"
@@ -188,11 +283,20 @@ class DiffusionTARPolicy(TARPolicyMixin, DiffusionPolicy):
             raise ValueError(f"Unsupported prediction type {self.config.prediction_type}")
         target = eps if self.config.prediction_type == "epsilon" else trajectory
         loss = F.mse_loss(pred, target, reduction="none")
-        return ElementLosses(loss, _entry_valid(batch, loss))
+        alpha_bar = model.noise_scheduler.alphas_cumprod.to(trajectory.device)[timesteps]
+        clip = self.config.clip_sample_range if self.config.clip_sample else None
+        error = diffusion_action_error(pred, eps, trajectory, alpha_bar, self.config.prediction_type, clip)
+        quantile = (timesteps.to(loss.dtype) + 0.5) / steps  # the middle of its timestep's 1 / steps of [0, 1]
+        return ElementLosses(loss, _entry_valid(batch, loss), action_error=error, quantile=quantile)
 
 
 class SmolVLATARPolicy(TARPolicyMixin, SmolVLAPolicy):
-    """SmolVLA with TAR: the flow-matching MSE per chunk entry and (real) action dim."""
+    """SmolVLA with TAR: the flow-matching MSE per chunk entry and (real) action dim. Its draw: the noise and the
+    time from SmolVLA's own samplers, in the order its model draws them (time: ``Beta(1.5, 1) * 0.999 + 0.001``,
+    fixed in SmolVLA's ``sample_time``)."""
+
+    #: SmolVLA's ``sample_time``: ``Beta(alpha, 1) * scale + offset`` as (alpha, scale, offset).
+    time_draw = (1.5, 0.999, 0.001)
 
     config_class = SmolVLATARConfig
     name = "smolvla_tar"
@@ -205,13 +309,18 @@ class SmolVLATARPolicy(TARPolicyMixin, SmolVLAPolicy):
         images, img_masks = self.prepare_images(batch)
         state = self.prepare_state(batch)
         tokens, masks = batch[OBS_LANGUAGE_TOKENS], batch[OBS_LANGUAGE_ATTENTION_MASK]
-        losses = self.model.forward(images, img_masks, tokens, masks, state, self.prepare_action(batch), None, None)
+        actions = self.prepare_action(batch)
+        noise = self.model.sample_noise(actions.shape, actions.device)
+        time = self.model.sample_time(actions.shape[0], actions.device)
+        losses = self.model.forward(images, img_masks, tokens, masks, state, actions, noise, time)
         loss = losses[:, :, : self.config.action_feature.shape[0]]
-        return ElementLosses(loss, _entry_valid(batch, loss))
+        return _flow_losses(loss, _entry_valid(batch, loss), time, *self.time_draw)
 
 
 class PI0TARPolicy(TARPolicyMixin, PI0Policy):
-    """pi0 with TAR: the flow-matching MSE per chunk entry and (real) action dim; padded entries are masked."""
+    """pi0 with TAR: the flow-matching MSE per chunk entry and (real) action dim; padded entries are masked. Its
+    draw: the noise and the time from the model's own samplers (time:
+    ``Beta(time_sampling_beta_alpha, time_sampling_beta_beta) * time_sampling_scale + time_sampling_offset``)."""
 
     config_class = PI0TARConfig
     name = "pi0_tar"
@@ -224,12 +333,13 @@ class PI0TARPolicy(TARPolicyMixin, PI0Policy):
         time = self.model.sample_time(actions.shape[0], actions.device)
         losses = self.model.forward(images, img_masks, tokens, masks, state, actions, noise, time)
         loss = losses[:, :, : self.config.output_features[ACTION].shape[0]]
-        return ElementLosses(loss, _entry_valid(batch, loss))
+        return _flow_losses(loss, _entry_valid(batch, loss), time, *_pi_time_draw(self.config))
 
 
 class PI05TARPolicy(TARPolicyMixin, PI05Policy):
     """pi0.5 with TAR (``time_axis=chunk``): the flow-matching MSE per chunk entry and (real) action dim; padded
-    entries are masked."""
+    entries are masked. Its draw: the noise and the time from the model's own samplers (time:
+    ``Beta(time_sampling_beta_alpha, time_sampling_beta_beta) * time_sampling_scale + time_sampling_offset``)."""
 
     config_class = PI05TARConfig
     name = "pi05_tar"
@@ -242,4 +352,4 @@ class PI05TARPolicy(TARPolicyMixin, PI05Policy):
         time = self.model.sample_time(actions.shape[0], actions.device)
         losses = self.model.forward(images, img_masks, tokens, masks, actions, noise, time)
         loss = losses[:, :, : self.config.output_features[ACTION].shape[0]]
-        return ElementLosses(loss, _entry_valid(batch, loss))
+        return _flow_losses(loss, _entry_valid(batch, loss), time, *_pi_time_draw(self.config))

@@ -11,8 +11,10 @@ end), plus, for ACT, a per-item regulariser ``[N]`` (the VAE's KL term). From it
 * ``chunk`` mode: ``N = B`` and TAR weights the ``H`` entries of each chunk (each the mean over the action dims),
   a reinterpretation of the paper's time axis that costs nothing extra.
 
-The item's loss is the TAR-weighted mean over its valid steps plus the mean of the regulariser over them: the
-regulariser is not an imitation loss and is not reweighted. Items come back as ``[B]``, so LeRobot's own sample
+TAR's weights rank the steps by their losses or, for a sampled loss, by a ranking signal of the same draw
+(``policy.tar.signal``, :func:`ranking_signal`); either way they weight the losses. The item's loss is the
+TAR-weighted mean over its valid steps plus the mean of the regulariser over them: the regulariser is not an
+imitation loss and is not reweighted. Items come back as ``[B]``, so LeRobot's own sample
 weights (``reduction="none"``) multiply them as they multiply any policy's per-sample loss. Beside it the reduction
 gives the same items' uniform loss (every valid step weighted 1) and the weights' effective sample size, so a run's
 log compares with the base policy's.
@@ -20,15 +22,23 @@ log compares with the base policy's.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from .tar_source import tar_weights
+from .tar_source import check_finite, tar_weights
 
-__all__ = ["ElementLosses", "TARReduction", "effective_sample_size", "fold_segments", "reduce_over_time"]
+__all__ = [
+    "ElementLosses",
+    "TARReduction",
+    "effective_sample_size",
+    "fold_segments",
+    "ranking_signal",
+    "reduce_over_time",
+]
 
 
 @dataclass(frozen=True)
@@ -42,12 +52,18 @@ class ElementLosses:
         terms: ``[N]`` per-item unweighted terms the base policy logs besides its loss, by the base policy's name
             for them (ACT: ``kld_loss``, its KL divergence before ``kl_weight``); the policy logs their mean over
             the real steps.
+        action_error: ``[N, H, A]`` for a sampled loss (diffusion, flow matching): the squared error of the action
+            chunk the prediction implies at the same draw, per element, detached; ``None`` otherwise.
+        quantile: ``[N]`` for a sampled loss: each item's drawn time (noise level) as its quantile in ``[0, 1]``
+            under the distribution it is drawn from; ``None`` otherwise.
     """
 
     loss: Tensor
     valid: Tensor
     extra: Tensor | None = None
     terms: dict[str, Tensor] = field(default_factory=dict)
+    action_error: Tensor | None = None
+    quantile: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -136,6 +152,55 @@ def fold_segments(
     return folded, valid
 
 
+def _steps(values: Tensor, valid_entry: Tensor, segments: Tensor | None) -> Tensor:
+    """``[N, H, A]`` element values -> ``[B, T]`` per-step values: the mean over the action dims, then (``segment``
+    mode) over the step's valid chunk entries; 0 on padded entries."""
+    entry = values.mean(-1)  # [N, H]: mean over the action dims
+    entry = torch.where(valid_entry, entry, torch.zeros((), dtype=entry.dtype, device=entry.device))
+    if segments is None:
+        return entry
+    step = entry.sum(-1) / valid_entry.sum(-1).clamp_min(1)  # [N]: mean over the step's valid chunk entries
+    return step.reshape(segments.shape)
+
+
+def ranking_signal(
+    element: ElementLosses,
+    losses: Tensor,
+    valid: Tensor,
+    *,
+    signal: str,
+    segments: Tensor | None,
+    normalizer: Callable[..., Tensor] | None = None,
+    update: bool = False,
+) -> Tensor:
+    """What TAR ranks the ``[B, T]`` steps by (``policy.tar.signal``), detached: the per-step ``losses``
+    (``loss``); the per-step mean of ``element.action_error`` (``action_error``); or the losses over
+    ``normalizer``'s running mean at each step's draw (``time_normalized``: tar-rl's ``TimeNormalizer`` called on
+    the losses, ``element.quantile`` per step, ``valid`` and ``update``, which keeps its update).
+
+    A signal that is NaN or inf at a valid step is refused as a non-finite loss is: a ``ValueError`` naming the
+    signal and the first such step.
+    """
+    losses = losses.detach()
+    if signal == "loss":
+        return losses
+    check_finite(losses, valid, "step")
+    if signal == "action_error":
+        if element.action_error is None:
+            raise ValueError("the policy's element losses carry no action_error for policy.tar.signal='action_error'")
+        scores = _steps(element.action_error.detach(), element.valid, segments)
+    elif signal == "time_normalized":
+        if element.quantile is None or normalizer is None:
+            raise ValueError("policy.tar.signal='time_normalized' needs the draws' quantiles and a normalizer")
+        quantile = element.quantile.detach()  # [N]: a segment's L items are its steps; a chunk's entries share one
+        position = quantile[:, None].expand(losses.shape) if segments is None else quantile.reshape(losses.shape)
+        scores = normalizer(losses, position, valid, update)
+    else:
+        raise ValueError(f"unknown ranking signal {signal!r}")
+    check_finite(scores, valid, "step", f"ranking signal {signal!r}")
+    return scores
+
+
 def reduce_over_time(
     element: ElementLosses,
     *,
@@ -145,6 +210,9 @@ def reduce_over_time(
     eps: float,
     cap: str,
     mix: float | Tensor,
+    signal: str = "loss",
+    normalizer: Callable[..., Tensor] | None = None,
+    update: bool = False,
 ) -> TARReduction:
     """TAR over the time axis: ``[B]`` losses from a base policy's element losses.
 
@@ -155,18 +223,19 @@ def reduce_over_time(
         segments: ``valid`` ``[B, L]`` from :func:`fold_segments` (``segment`` mode; ``N = B * L``) or ``None``
             (``chunk`` mode: the time axis is the chunk, ``N = B``).
         gamma, w_max, eps, cap, mix: TAR's settings and the schedule's mixing weight (``tar_weights``).
+        signal, normalizer, update: what the weights rank the steps by (:func:`ranking_signal`); they weight the
+            losses whatever it is.
     """
     valid_entry = element.valid
-    entry = element.loss.mean(-1)  # [N, H]: mean over the action dims
-    entry = torch.where(valid_entry, entry, torch.zeros((), dtype=entry.dtype, device=entry.device))
+    losses = _steps(element.loss, valid_entry, segments)
     if segments is None:
-        losses, valid = entry, valid_entry
+        valid = valid_entry
     else:
-        count = valid_entry.sum(-1)
-        step = entry.sum(-1) / count.clamp_min(1)  # [N]: mean over the step's valid chunk entries
-        losses = step.reshape(segments.shape)
-        valid = segments & (count > 0).reshape(segments.shape)
-    weights = tar_weights(losses, valid, gamma=gamma, w_max=w_max, eps=eps, cap=cap, mix=mix)
+        valid = segments & (valid_entry.sum(-1) > 0).reshape(segments.shape)
+    scores = ranking_signal(
+        element, losses, valid, signal=signal, segments=segments, normalizer=normalizer, update=update
+    )
+    weights = tar_weights(scores, valid, gamma=gamma, w_max=w_max, eps=eps, cap=cap, mix=mix)
     n_valid = valid.sum(-1).clamp_min(1)
     per_item = (weights * losses).sum(-1) / n_valid
     uniform = (valid * losses).sum(-1) / n_valid
