@@ -37,7 +37,7 @@ signal (``signal_r`` in place of ``loss_r``; ``top_agree`` and the weights are t
 by it). Both draws of every signal use the same seeds, so a step's signal and loss come from the same draw. A head
 that does not offer a signal asked for is refused before any run is computed, naming the head and its signals.
 
-* ``time_normalized`` keeps a running mean of the loss per time bin (:class:`tar_rl.policies.flow.TimeNormalizer`),
+* ``time_normalized`` keeps a running mean of the loss per time bin (:class:`tar_rl.objectives.signals.TimeNormalizer`),
   which a run trained with another signal does not hold. Before the two draws it is warmed up on the same recorded
   segments, deterministically: :data:`WARMUP_PASSES` (20) passes over the run's recorded segments (the cut above),
   each pass in a fresh order (a ``torch.Generator`` seeded :data:`WARMUP_SEED`) and in batches of the run's

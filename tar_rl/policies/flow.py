@@ -22,7 +22,8 @@ action expert, Black et al. 2024) predicts a velocity field:
   differ by the steps and not by the draw.
 * ranking signals (what ``TARLoss`` may rank the steps by instead of the loss, :data:`FLOW_SIGNALS`):
   ``action_error``, the error of the chunk the velocity implies, and ``time_normalized``, the loss
-  over a running estimate of the mean loss at its time (:class:`TimeNormalizer`). The implied chunk:
+  over a running estimate of the mean loss at its time (:class:`~tar_rl.objectives.signals.TimeNormalizer`).
+  The implied chunk:
   from ``x_tau = tau * noise + (1 - tau) * A`` and ``u = noise - A``, ``A = x_tau - tau * u``, so the
   velocity ``v_hat`` implies ``A_hat = x_tau - tau * v_hat`` and ``A_hat - A = tau * (u - v_hat)``: per
   chunk element ``(A_hat - A) ** 2 = tau ** 2 * (v_hat - u) ** 2``, the step's action error is
@@ -43,7 +44,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from tar_rl.objectives.signals import TIME_BINS, TIME_DECAY, TimeNormalizer
+from tar_rl.objectives.signals import TimeNormalizer
 
 from .base import DataInfo, Policy, PolicySpec, register_policy
 from .chunking import TIME, chunked_policy
@@ -51,13 +52,10 @@ from .octo import OctoConfig, SeededSampling, TransformerBlock, check_chunk_shap
 
 __all__ = [
     "FLOW_SIGNALS",
-    "TIME_BINS",
-    "TIME_DECAY",
     "TIME_DISTRIBUTIONS",
     "TIME_SAMPLINGS",
     "FlowConfig",
     "FlowPolicy",
-    "TimeNormalizer",
     "euler_integrate",
     "flow_time",
     "flow_time_cdf",

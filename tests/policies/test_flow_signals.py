@@ -19,9 +19,10 @@ import torch
 from tensordict import TensorDict
 
 from tar_rl.collectors.metaworld.tasks import INSTRUCTIONS, TASKS
+from tar_rl.objectives.signals import TimeNormalizer
 from tar_rl.policies import POLICIES, DataInfo, build_policy
 from tar_rl.policies.chunking import ChunkLoss
-from tar_rl.policies.flow import FlowConfig, FlowPolicy, TimeNormalizer
+from tar_rl.policies.flow import FlowConfig, FlowPolicy
 from tar_rl.recipes import make_objective
 from tar_rl.recipes.config import objective_config
 
