@@ -5,6 +5,8 @@
   (:mod:`.checkpoints`).
 * ``lerobot-tar to-tar CHECKPOINT OUT``: a base checkpoint as its TAR type, to post-train it with
   ``lerobot-train --policy.path=OUT``.
+* ``lerobot-tar serve CHECKPOINT``: a state policy answering action chunks for tar-rl's evaluator on stdin and
+  stdout (:mod:`.serve`).
 
 A refusal prints one line naming what is wrong and exits with status 1, before anything is written.
 """
@@ -46,11 +48,19 @@ def _parser() -> argparse.ArgumentParser:
     tar = commands.add_parser("to-tar", help="write a base checkpoint as its TAR type (act -> act_tar, ...)")
     tar.add_argument("checkpoint", help="an act, diffusion, smolvla, pi0 or pi05 checkpoint folder")
     tar.add_argument("out", help="the new checkpoint's folder (must not exist)")
+    serve = commands.add_parser("serve", help="answer action chunks of a state policy on stdin/stdout (framed .npy)")
+    serve.add_argument("checkpoint", help="a policy checkpoint (its pretrained_model folder or the folder above)")
+    serve.add_argument("--device", default="cpu", help="where the policy runs (default cpu)")
+    serve.add_argument("--threads", type=int, help="torch threads (default torch's)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command == "serve":
+        from .serve import main as serve
+
+        return serve(args.checkpoint, args.device, args.threads)
     from .checkpoints import CheckpointError, to_base, to_tar
     from .export import DatasetError, ExportError, export_dataset
 
