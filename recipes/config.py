@@ -57,7 +57,6 @@ __all__ = [
     "default_config",
     "objective_config",
     "objective_params",
-    "objective_section",
     "register_configs",
     "typed_config",
 ]
@@ -144,29 +143,6 @@ def _attributes(klass: type) -> str:
         return ""
     entries = doc.split("Attributes:", 1)[1].split("\n\n")[0]
     return "".join(f"{line}\n" for line in entries.splitlines() if line.strip())
-
-
-def objective_section(values: dict) -> dict:
-    """An objective section without the parameters of other weightings that hold their defaults.
-
-    A saved config may list every registered weighting's parameters in its objective section (the committed
-    runs' configs do): the ones its weighting does not have, left at their defaults, change nothing it computes
-    and are left out here, so that such a config reads as, and is named as, the run it describes. A parameter of
-    another weighting at another value stays (a typed config refuses it; a run's name keeps it).
-    """
-    name = values.get("name")
-    own = {f.name for f in dataclasses.fields(objective_config(name))} if name in WEIGHTINGS else set(values)
-    return {key: value for key, value in values.items() if key in own or _OTHER_DEFAULTS.get(key, _NONE) != value}
-
-
-_NONE = object()
-#: Every registered weighting's parameters at their defaults, as config values.
-_OTHER_DEFAULTS = {
-    key: value
-    for name in WEIGHTINGS
-    for key, value in dataclasses.asdict(objective_config(name)()).items()
-    if key not in {f.name for f in dataclasses.fields(ObjectiveConfig)}
-}
 
 
 def objective_params(obj: ObjectiveConfig):
@@ -504,8 +480,8 @@ def _node(where: str, cls: type, values: dict) -> Any:
 
 def typed_config(config: dict) -> TrainConfig:
     """The typed config of a plain dict of settings (a composed job's or a run's saved one): each section its
-    dataclass, ``objective`` the config dataclass of the weighting it names (other weightings' parameters at their
-    defaults left out, :func:`objective_section`), ``policy`` the config dataclass of the head it names.
+    dataclass, ``objective`` the config dataclass of the weighting it names, ``policy`` the config dataclass of the
+    head it names.
 
     Values are taken as they are: their checks are ``tar_rl.recipes.validate.validate``'s, which is how a
     job's typed config is made. Settings the dict lacks take their defaults.
@@ -518,7 +494,7 @@ def typed_config(config: dict) -> TrainConfig:
     name = head.get("name")
     if name not in POLICIES:
         raise ConfigError(f"policy.name={name!r} is not valid; choose one of {list(POLICIES)}")
-    objective = objective_section(values.pop("objective", {}))
+    objective = values.pop("objective", {})
     weighting = objective.get("name", ObjectiveConfig.name)
     if weighting not in WEIGHTINGS:
         raise ConfigError(f"objective.name={weighting!r} is not valid; choose one of {list(WEIGHTINGS)}")

@@ -19,7 +19,7 @@ from tar_rl.runs import (
 from .builders import make_evaluation_pool, make_evaluator, make_policy
 from .config import typed_config
 from .errors import ConfigError
-from .rundir import with_defaults
+from .rundir import migrate_config, with_defaults
 from .validate import validate
 
 __all__ = ["evaluate_checkpoint", "policy_from_checkpoint"]
@@ -27,7 +27,7 @@ __all__ = ["evaluate_checkpoint", "policy_from_checkpoint"]
 
 def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModuleBase:
     """Rebuild the saved policy (EMA weights if the run kept them) for inference, on CPU."""
-    head = typed_config(state["config"]).policy
+    head = typed_config(migrate_config(state["config"])).policy
     policy = make_policy(head, DataInfo.from_dict(state["data_info"]))
     weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
     try:
@@ -60,7 +60,7 @@ def evaluate_checkpoint(
     """
     path = Path(path)
     state = load_checkpoint(path)
-    config = with_defaults(state["config"])
+    config = with_defaults(migrate_config(state["config"]))
     # Evaluating a saved policy needs neither its post-training source nor held-out data.
     config["init"] = {"from": None}
     config["diagnostics"]["heldout_demos"] = 0
