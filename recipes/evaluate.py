@@ -71,9 +71,11 @@ def evaluate_checkpoint(
     if tasks:
         section["tasks"] = list(tasks)
     job = validate(config)
-    ev = job.config.eval
+    spec = job.evaluation
+    if spec is None:
+        raise ConfigError(f"{path}: the run's eval.rollouts is 0; give --rollouts (at least 1) to evaluate it")
     actor = policy_from_checkpoint(state, path)
-    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev.seed}.csv"
+    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{spec.seed}.csv"
     try:  # before the rollouts, which a folder that cannot take their file would lose
         check_writable(target.parent)
         if target.is_dir():
@@ -81,10 +83,8 @@ def evaluate_checkpoint(
     except OSError as err:
         raise ConfigError(f"cannot write the rollouts to {target} ({err}); choose a writable file with --out") from None
     with make_evaluation_pool(job.suite) as pool:
-        rollouts_df = make_evaluator(ev, job.config.data, job.eval_tasks, pool, progress=progress, suite=job.suite)(
-            actor
-        )
+        rollouts_df = make_evaluator(spec, job.suite, job.eval_tasks, pool, progress=progress)(actor)
     write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
-    print(f"{path} (step {state['step']}), {ev.rollouts} rollouts per task, seed {ev.seed}; rollouts in {target}")
+    print(f"{path} (step {state['step']}), {spec.rollouts} rollouts per task, seed {spec.seed}; rollouts in {target}")
     print_table(summarize(rollouts_df))
     return rollouts_df

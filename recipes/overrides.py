@@ -22,11 +22,12 @@ from .config import (
     PRESETS,
     SECTIONS,
     TrainConfig,
+    int_rule,
     objective_config,
     register_configs,
+    setting_bounds,
 )
 from .errors import ConfigError
-from .validate import INT_SETTINGS, int_rule
 
 __all__ = ["check_overrides"]
 
@@ -112,8 +113,9 @@ def _problem(key: str, message: str) -> str:
         problem = f"{boolean.group(1)!r} is not {_KINDS['Boolean']}"
     else:
         problem = first
-    if key in INT_SETTINGS and problem.endswith("is not an integer"):
-        problem += f"; {key} must be {int_rule(*INT_SETTINGS[key])}"
+    bounds = setting_bounds(key)
+    if bounds is not None and problem.endswith("is not an integer"):
+        problem += f"; {key} must be {int_rule(*bounds)}"
     return f"{key}: {problem}"
 
 

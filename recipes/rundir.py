@@ -14,13 +14,12 @@ from pathlib import Path
 
 from tar_rl import runs
 from tar_rl.io import check_writable
+from tar_rl.objectives import WEIGHTINGS
 from tar_rl.runs import (
     CHECKPOINT,
     config_differences,
     load_checkpoint,
 )
-
-from tar_rl.objectives import WEIGHTINGS
 
 from .config import ObjectiveConfig, default_config, objective_config
 from .errors import ConfigError
