@@ -12,6 +12,9 @@ import yaml
 from paths import REPO
 from recipe_helpers import compose_config
 
+from benchmarks.studies import records
+from tar_rl.recipes import run_name
+
 BENCH = REPO / "benchmarks"
 
 
@@ -45,8 +48,6 @@ def test_a_listed_config_and_summary_are_rewritten_once(tool):
 
 def test_a_migrated_config_must_name_its_folder(tool, tmp_path):
     config = compose_config("objective=uniform")
-    from tar_rl.recipes import run_name
-
     folder = tmp_path / "runs" / run_name(config)
     folder.mkdir(parents=True)
     tool.check_run_name(folder / "config.yaml", yaml.safe_dump(config))
@@ -57,3 +58,17 @@ def test_a_migrated_config_must_name_its_folder(tool, tmp_path):
 def test_no_committed_config_is_left_to_migrate(tool, capsys):
     assert tool.main(["--check"]) == 0
     assert capsys.readouterr().out.startswith("0 file(s) would change")
+
+
+def test_collect_copies_a_run_of_an_older_version_as_this_version_writes_it(tmp_path):
+    config = compose_config("objective=uniform", f"data.root={tmp_path / 'data'}", f"runs_root={tmp_path / 'src'}")
+    run = tmp_path / "src" / "old-run"
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(yaml.safe_dump(_listed(config), sort_keys=False))
+    summary = {"finished": True, "seed": 0, "config": _listed(config)}
+    (run / "summary.json").write_text(json.dumps(summary))
+    assert records.collect(tmp_path / "src", tmp_path / "out") == [run_name(config)]
+    copy = tmp_path / "out" / "runs" / run_name(config)
+    for saved in (yaml.safe_load((copy / "config.yaml").read_text()), json.loads((copy / "summary.json").read_text())):
+        objective = saved.get("config", saved)["objective"]
+        assert objective == config["objective"] and "focal_beta" not in objective
