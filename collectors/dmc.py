@@ -46,7 +46,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.suite import COLUMNS, Suite
+from tar_rl.collectors.suite import COLUMNS, EvalSpec, Suite
 from tar_rl.objectives.registry import did_you_mean
 
 __all__ = [
@@ -443,17 +443,17 @@ class DMControlSuite(Suite):
     def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
         return set(range(seed, seed + rollouts))
 
-    def check_seeds(self, data, ev) -> None:
-        check_disjoint(data.seed, max_attempts(data.n_demos), ev.seed, ev.rollouts)
+    def check_seeds(self, seed: int, n_demos: int, spec: EvalSpec) -> None:
+        check_disjoint(seed, max_attempts(n_demos), spec.seed, spec.rollouts)
 
-    def check_dataset(self, dataset, eval_seed: int, rollouts: int) -> None:
-        clash = sorted(set(dataset.metadata["variation_seeds"]) & self.eval_seeds(eval_seed, rollouts))
+    def check_dataset(self, dataset, spec: EvalSpec) -> None:
+        clash = sorted(set(dataset.metadata["variation_seeds"]) & self.eval_seeds(spec.seed, spec.rollouts))
         if clash:
             raise ValueError(f"the dataset's demonstrations used evaluation seeds {clash[:5]}")
 
     def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         return build_dataset(data.root, tasks, n_demos, seed, data.chunk_horizon, data.history, verbose=progress)
 
-    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
+    def evaluate(self, spec: EvalSpec, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
         # (``pool`` unused: the rollouts run in this process)
-        return evaluate(actor, tasks, ev.rollouts, seed=ev.seed, horizon=ev.horizon, shard=shard)
+        return evaluate(actor, tasks, spec.rollouts, seed=spec.seed, horizon=spec.horizon, shard=shard)

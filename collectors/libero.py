@@ -57,7 +57,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tar_rl.collectors.suite import COLUMNS, Suite
+from tar_rl.collectors.suite import COLUMNS, EvalSpec, Suite
 from tar_rl.data import load_dataset
 from tar_rl.objectives.registry import did_you_mean
 
@@ -525,13 +525,13 @@ class LiberoSuite(Suite):
     def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
         return set()  # LIBERO's fixed initial states, no seeds
 
-    def check_seeds(self, data, ev) -> None:
+    def check_seeds(self, seed: int, n_demos: int, spec: EvalSpec) -> None:
         raise ValueError(NO_COLLECTION)
 
-    def check_dataset(self, dataset, eval_seed: int, rollouts: int) -> None:
+    def check_dataset(self, dataset, spec: EvalSpec) -> None:
         # No seed range to compare: what is checked is that the dataset's tasks are LIBERO tasks, its
         # observation keys can be rebuilt from the simulator, and there is one initial state per rollout.
-        if rollouts > INIT_STATES:
+        if spec.rollouts > INIT_STATES:
             raise ValueError(f"LIBERO has {INIT_STATES} initial states per task: at most that many rollouts")
         check_obs_keys([entry["key"] for entry in dataset.metadata.get("obs_keys", [])])
         try:
@@ -551,14 +551,14 @@ class LiberoSuite(Suite):
     def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         raise ValueError(NO_COLLECTION)
 
-    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
+    def evaluate(self, spec: EvalSpec, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
         # (``pool`` unused: the rollouts run in this process)
-        metadata = load_dataset(data.path).metadata
+        metadata = load_dataset(spec.dataset).metadata
         return evaluate(
             actor,
             tasks,
-            ev.rollouts,
-            seed=ev.seed,
+            spec.rollouts,
+            seed=spec.seed,
             horizon=None,  # each suite's H: the paper's suite-wise normalisation
             shard=shard,
             task_ids=metadata["task_ids"],

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from types import MappingProxyType
 
 from tar_rl.data import DemoDataset
 
-__all__ = ["COLUMNS", "Suite"]
+__all__ = ["COLUMNS", "EvalSpec", "Suite"]
 
 # The per-rollout columns every suite's evaluation returns, in this order.
 COLUMNS = (
@@ -25,11 +26,33 @@ COLUMNS = (
 )
 
 
+@dataclass(frozen=True)
+class EvalSpec:
+    """One job's evaluation, as a suite's evaluator reads it (the recipe builds it once from its config).
+
+    Attributes:
+        rollouts: rollouts per task, each on its own variation (at least 1).
+        seed: base seed of the evaluation variations.
+        horizon: step budget per rollout (a suite with its own budgets, LIBERO, does not read it).
+        workers: evaluation processes (None: every core).
+        image_size: the size of the camera images a policy reading ``pixels`` sees (0: none).
+        dataset: the folder of a given dataset (``data.path``) whose task ids and observation keys a suite
+            evaluating imported demonstrations reads; None for a dataset the suite collected.
+    """
+
+    rollouts: int
+    seed: int
+    horizon: int
+    workers: int | None = None
+    image_size: int = 0
+    dataset: str | None = None
+
+
 class Suite:
     """What the recipe needs of a simulator suite.
 
-    Methods take the sections of the job's typed config they read: ``data`` (the recipe's ``DataConfig``:
-    ``data.root``, ``data.path``, ...) and ``ev`` (its ``EvalConfig``: ``eval.rollouts``, ``eval.seed``, ...).
+    A dataset's methods take the recipe's ``data`` section (``DataConfig``: ``data.root``, ``data.path``, ...); the
+    evaluation's take an :class:`EvalSpec`.
 
     Attributes:
         name: its ``data.suite`` name.
@@ -69,16 +92,15 @@ class Suite:
         """The seeds ``rollouts`` evaluation rollouts per task from ``seed`` use."""
         raise NotImplementedError
 
-    def check_seeds(self, data, ev) -> None:
-        """Refuse demonstration seeds (``data.seed``, ``data.n_demos``) that may meet the evaluation's
-        (``eval.seed``, ``eval.rollouts``).
+    def check_seeds(self, seed: int, n_demos: int, spec: EvalSpec) -> None:
+        """Refuse demonstration seeds (``n_demos`` per task from ``seed``) that may meet the evaluation's.
 
         Raises:
             ValueError: naming the shared seeds.
         """
         raise NotImplementedError
 
-    def check_dataset(self, dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
+    def check_dataset(self, dataset: DemoDataset, spec: EvalSpec) -> None:
         """The same for a dataset already collected or given (``ValueError``)."""
         raise NotImplementedError
 
@@ -94,8 +116,8 @@ class Suite:
         job leaves when its evaluations are over; nothing for a suite whose rollouts run in the calling process."""
         return contextlib.nullcontext()
 
-    def evaluate(self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
-        """One row per rollout (``tar_rl.collectors.suite.COLUMNS``) of ``eval.rollouts`` per task.
+    def evaluate(self, spec: EvalSpec, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool):
+        """One row per rollout (``tar_rl.collectors.suite.COLUMNS``) of ``spec.rollouts`` per task.
 
         ``pool``: the job's :meth:`evaluation_pool`.
         """

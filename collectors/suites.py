@@ -6,8 +6,8 @@ evaluation with the evaluator's per-rollout columns, ``tar_rl.collectors.suite.C
 no branch for any one of them. Adding a simulator is one module with a ``Suite`` subclass and its
 entry in the registration at the bottom of this module.
 
-Methods take the sections of the job's typed config they read (``data``, ``ev``: the recipe's ``DataConfig``
-and ``EvalConfig``).
+A dataset's methods take the recipe's ``data`` section; the evaluation's an
+:class:`~tar_rl.collectors.suite.EvalSpec`.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from tar_rl.objectives.registry import Registry
 from .dmc import DMControlSuite
 from .libero import LiberoSuite
 from .metaworld.suite import MetaWorldSuite
-from .suite import Suite
+from .suite import EvalSpec, Suite
 
-__all__ = ["SUITES", "Suite", "suite_for"]
+__all__ = ["SUITES", "EvalSpec", "Suite", "suite_for"]
 
 
 #: The suites by ``data.suite`` name.

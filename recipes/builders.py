@@ -11,12 +11,12 @@ import pandas as pd
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from tar_rl.collectors.suites import SUITES
+from tar_rl.collectors.suites import SUITES, EvalSpec
 from tar_rl.data import DatasetError, DemoDataset, load_dataset
 from tar_rl.objectives import WEIGHTINGS, MixSchedule, PerturbedTarget, TARLoss
 from tar_rl.policies import DataInfo, Policy, build_policy
 
-from .config import DataConfig, EvalConfig, ObjectiveConfig, OptimConfig, objective_params
+from .config import DataConfig, ObjectiveConfig, OptimConfig, objective_params
 from .errors import ConfigError
 
 __all__ = [
@@ -121,24 +121,21 @@ def make_optimizer(opt: OptimConfig, params) -> tuple[torch.optim.Optimizer, tor
 
 
 def make_evaluator(
-    ev: EvalConfig,
-    data: DataConfig,
+    spec: EvalSpec,
+    suite: str,
     tasks: Sequence[str],
     pool,
     progress: bool = True,
     shard: tuple[int, int] = (0, 1),
-    suite: str | None = None,
 ) -> Callable[[TensorDictModuleBase], pd.DataFrame]:
-    """A function running the evaluator collectors of ``suite`` (default ``data.suite``) on a policy, with the
-    ``eval`` section's settings.
+    """A function running the evaluator collectors of ``suite`` on a policy, as ``spec`` says (a checked job's
+    ``validate(config).evaluation`` and ``.suite``, which names the suite of a ``data.path`` dataset).
 
-    ``validate(config).suite`` names the suite of a ``data.path`` dataset. The evaluations run on ``pool``
-    (:func:`make_evaluation_pool`'s), which the caller leaves when its evaluations are over.
-    ``shard=(rank, world)`` runs that share of the rollouts on this process's share of the cores. A MetaWorld
-    policy reading ``pixels`` gets camera images of ``data.image_size``.
+    The evaluations run on ``pool`` (:func:`make_evaluation_pool`'s), which the caller leaves when its evaluations
+    are over. ``shard=(rank, world)`` runs that share of the rollouts on this process's share of the cores.
     """
-    run_suite = SUITES[suite or data.suite]
-    return lambda actor: run_suite.evaluate(ev, data, actor, list(tasks), progress, shard, pool)
+    run_suite = SUITES[suite]
+    return lambda actor: run_suite.evaluate(spec, actor, list(tasks), progress, shard, pool)
 
 
 def make_evaluation_pool(suite: str) -> contextlib.AbstractContextManager:

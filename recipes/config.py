@@ -36,13 +36,15 @@ from typing import Any
 
 from omegaconf import MISSING
 
-from tar_rl.objectives import WEIGHTINGS
+from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS
 from tar_rl.policies import POLICIES
 
 from .errors import ConfigError
 
 __all__ = [
     "DEFAULT_TASKS",
+    "MAX_LR",
+    "MAX_STEPS",
     "OBJECTIVE_PRESETS",
     "PRESETS",
     "SECTIONS",
@@ -53,12 +55,15 @@ __all__ = [
     "ObjectiveConfig",
     "OptimConfig",
     "TrainConfig",
+    "check_choice",
+    "check_int",
     "config_dict",
     "default_config",
+    "int_rule",
     "objective_config",
     "objective_params",
-    "objective_section",
     "register_configs",
+    "setting_bounds",
     "typed_config",
 ]
 
@@ -74,6 +79,52 @@ DEFAULT_TASKS = (
     "stick-pull",
     "pick-place-wall",
 )
+
+#: The most optimiser steps a job may ask for (the paper trains 100K; a billion steps of the smallest head take
+#: weeks on a GPU): a larger count is a typo, refused before work rather than found out days later.
+MAX_STEPS = 1_000_000_000
+#: The largest peak learning rate: AdamW moves each weight by about ``lr`` per step, so a larger one makes
+#: the weights of these heads (of order 1) meaningless at the first step.
+MAX_LR = 1.0
+
+
+def int_rule(low: int, high: int | None) -> str:
+    """What an integer setting of these bounds must be, in words (``an integer >= 0``)."""
+    return f"an integer between {low} and {high}" if high is not None else f"an integer >= {low}"
+
+
+def check_int(name: str, value, low: int, high: int | None = None) -> None:
+    """Refuse ``value`` unless it is an integer (not a bool) in ``[low, high]`` (``high`` None: no upper bound)."""
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
+    if not ok:
+        raise ConfigError(f"{name} must be {int_rule(low, high)}, got {value!r}")
+
+
+def check_choice(name: str, value, choices) -> None:
+    if value not in choices:
+        raise ConfigError(f"{name}={value!r} is not valid; choose one of {list(choices)}")
+
+
+def bounded(default: int | None, low: int, high: int | None = None) -> Any:
+    """A field of an integer setting that lies in ``[low, high]`` (``high`` None: no upper bound; a field whose
+    default is None may also be null), checked by its section's ``check``."""
+    return field(default=default, metadata={"bounds": (low, high)})
+
+
+def _check_bounds(section: Any, prefix: str) -> None:
+    """The integer fields of ``section`` (a dataclass instance) within their bounds (:func:`bounded`)."""
+    for f in dataclasses.fields(section):
+        value = getattr(section, f.name)
+        if "bounds" in f.metadata and not (value is None and f.default is None):
+            check_int(f"{prefix}{f.name}", value, *f.metadata["bounds"])
+
+
+def setting_bounds(key: str) -> tuple[int, int | None] | None:
+    """The bounds of the integer setting ``key`` (``seed``, ``optim.steps``: :func:`bounded`); None for another."""
+    section, _, name = key.rpartition(".")
+    cls = SECTIONS.get(section) if section else TrainConfig
+    fields = {f.name: f for f in dataclasses.fields(cls)} if cls is not None else {}
+    return fields[name].metadata.get("bounds") if name in fields else None
 
 
 @dataclass
@@ -107,6 +158,30 @@ class ObjectiveConfig:
     shape: str = "linear"
     compile: str = "auto"
     signal: str = "loss"
+
+    def check(self) -> None:
+        """Refuse a setting out of range, naming it; the weighting's parameters check themselves
+        (:func:`objective_params`). Whether the head offers ``signal`` is the job's check."""
+        check_choice("objective.name", self.name, list(WEIGHTINGS))
+        check_choice("objective.shape", self.shape, ["linear", "cosine"])
+        check_choice("objective.compile", self.compile, list(COMPILE_MODES))
+        if not 0 <= self.start < 1:
+            never = " (the weighting would start after the last step: TAR would never reach full strength)"
+            raise ConfigError(
+                f"objective.start is a fraction of optim.steps and must lie in [0, 1), got {self.start}"
+                + (never if self.start >= 1 else "")
+            )
+        if not 0 <= self.ramp <= 1:
+            raise ConfigError(f"objective.ramp is a fraction of optim.steps and must lie in [0, 1], got {self.ramp}")
+        if self.start + self.ramp > 1 + 1e-9:
+            raise ConfigError(
+                f"objective.start + objective.ramp must be <= 1 (the ramp ends by the last step), got {self.start} + "
+                f"{self.ramp} = {self.start + self.ramp:g}: TAR would never reach full strength; lower one of them"
+            )
+        try:
+            objective_params(self)
+        except ValueError as err:
+            raise ConfigError(f"objective.{err}") from None
 
 
 def _config_field(f: dataclasses.Field) -> tuple[str, Any, Any]:
@@ -144,29 +219,6 @@ def _attributes(klass: type) -> str:
         return ""
     entries = doc.split("Attributes:", 1)[1].split("\n\n")[0]
     return "".join(f"{line}\n" for line in entries.splitlines() if line.strip())
-
-
-def objective_section(values: dict) -> dict:
-    """An objective section without the parameters of other weightings that hold their defaults.
-
-    A saved config may list every registered weighting's parameters in its objective section (the committed
-    runs' configs do): the ones its weighting does not have, left at their defaults, change nothing it computes
-    and are left out here, so that such a config reads as, and is named as, the run it describes. A parameter of
-    another weighting at another value stays (a typed config refuses it; a run's name keeps it).
-    """
-    name = values.get("name")
-    own = {f.name for f in dataclasses.fields(objective_config(name))} if name in WEIGHTINGS else set(values)
-    return {key: value for key, value in values.items() if key in own or _OTHER_DEFAULTS.get(key, _NONE) != value}
-
-
-_NONE = object()
-#: Every registered weighting's parameters at their defaults, as config values.
-_OTHER_DEFAULTS = {
-    key: value
-    for name in WEIGHTINGS
-    for key, value in dataclasses.asdict(objective_config(name)()).items()
-    if key not in {f.name for f in dataclasses.fields(ObjectiveConfig)}
-}
 
 
 def objective_params(obj: ObjectiveConfig):
@@ -217,17 +269,22 @@ class DataConfig:
     """
 
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
-    n_demos: int = 10
-    seed: int = 0
+    n_demos: int = bounded(10, 1)
+    seed: int = bounded(0, 0)
     root: str = "datasets"
-    slice_len: int = 16
-    batch_segments: int = 64
-    chunk_horizon: int = 8
-    history: int = 2
-    image_size: int = 0
-    workers: int | None = None
+    slice_len: int = bounded(16, 1)
+    batch_segments: int = bounded(64, 1)
+    chunk_horizon: int = bounded(8, 1)
+    history: int = bounded(2, 1)
+    image_size: int = bounded(0, 0)
+    workers: int | None = bounded(None, 0)
     path: str | None = None
     suite: str = "metaworld"
+
+    def check(self) -> None:
+        """Refuse a number out of range, naming it (the tasks, the suite and ``slice_len`` against the episodes are
+        the job's checks)."""
+        _check_bounds(self, "data.")
 
 
 @dataclass
@@ -247,12 +304,16 @@ class EvalConfig:
     """
 
     tasks: list[str] = field(default_factory=list)
-    rollouts: int = 20
-    seed: int = 1000
+    rollouts: int = bounded(20, 0)
+    seed: int = bounded(1000, 0)
     horizon: int = 500
-    every: int = 0
-    workers: int | None = None
+    every: int = bounded(0, 0)
+    workers: int | None = bounded(None, 0)
     use_ema: bool = True
+
+    def check(self) -> None:
+        """Refuse a number out of range, naming it."""
+        _check_bounds(self, "eval.")
 
 
 @dataclass
@@ -274,17 +335,32 @@ class OptimConfig:
             stops (0: stop at the first one). The last good checkpoint is kept either way.
     """
 
-    steps: int = 12_000
+    steps: int = bounded(12_000, 1, MAX_STEPS)
     lr: float = 1e-3
     weight_decay: float = 1e-4
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
-    warmup: int = 200
+    warmup: int = bounded(200, 0)
     decay: str = "cosine"
     min_lr_ratio: float = 0.1
     grad_clip: float = 1.0
     ema: float = 0.0
     amp: bool = True
-    skip_nonfinite: int = 0
+    skip_nonfinite: int = bounded(0, 0)
+
+    def check(self) -> None:
+        """Refuse a setting out of range, naming it."""
+        _check_bounds(self, "optim.")
+        if not 0 < self.lr <= MAX_LR:
+            raise ConfigError(f"optim.lr must be a number in (0, {MAX_LR:g}], got {self.lr}")
+        check_choice("optim.decay", self.decay, ["cosine", "constant"])
+        if not 0 <= self.min_lr_ratio <= 1:
+            raise ConfigError(f"optim.min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio}")
+        if self.grad_clip < 0:
+            raise ConfigError(f"optim.grad_clip must be >= 0 (0: off), got {self.grad_clip}")
+        if not 0 <= self.ema < 1:
+            raise ConfigError(f"optim.ema is a decay in [0, 1) (0: off), got {self.ema}")
+        if len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
+            raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {self.betas}")
 
 
 @dataclass
@@ -303,11 +379,15 @@ class LoggingConfig:
         record_episodes: demonstrations recorded per task at each of those steps.
     """
 
-    every: int = 100
+    every: int = bounded(100, 1)
     progress: bool = True
-    checkpoint_every: int = 1000
+    checkpoint_every: int = bounded(1000, 1)
     record_weights_at: list[int] = field(default_factory=lambda: [-1])
-    record_episodes: int = 1
+    record_episodes: int = bounded(1, 1)
+
+    def check(self) -> None:
+        """Refuse a number out of range, naming it (``record_weights_at`` against ``optim.steps`` is the job's)."""
+        _check_bounds(self, "logging.")
 
 
 @dataclass
@@ -330,10 +410,14 @@ class DiagnosticsConfig:
         bins: bins of normalised episode time for the weight / held-out loss alignment.
     """
 
-    heldout_demos: int = 3
-    heldout_seed: int = 5000
-    train_episodes: int = 10
-    bins: int = 10
+    heldout_demos: int = bounded(3, 0)
+    heldout_seed: int = bounded(5000, 0)
+    train_episodes: int = bounded(10, 1)
+    bins: int = bounded(10, 2)
+
+    def check(self) -> None:
+        """Refuse a number out of range, naming it (the held-out seeds against the others are the job's check)."""
+        _check_bounds(self, "diagnostics.")
 
 
 def _default_init() -> dict[str, str | None]:
@@ -406,12 +490,20 @@ class TrainConfig:
     diagnostics: DiagnosticsConfig = MISSING
     # A dict, not a dataclass: the key is the Python keyword ``from`` (``init.from=...``).
     init: dict[str, str | None] = field(default_factory=_default_init)
-    seed: int = 0
-    threads: int = 1
+    seed: int = bounded(0, 0)
+    threads: int = bounded(1, 0)
     device: str = "auto"
     runs_root: str = "runs"
     run_dir: str = ""
     hydra: Any = field(default_factory=_hydra_settings)
+
+    def check(self) -> None:
+        """Each section's check of its own settings (the rules that span sections are
+        ``tar_rl.recipes.validate.validate``'s)."""
+        self.objective.check()
+        _check_bounds(self, "")
+        for name in SECTIONS:
+            getattr(self, name).check()
 
 
 CONFIG_NAME = "train"
@@ -502,23 +594,34 @@ def _node(where: str, cls: type, values: dict) -> Any:
     return cls(**values)
 
 
-def typed_config(config: dict) -> TrainConfig:
-    """The typed config of a plain dict of settings (a composed job's or a run's saved one): each section its
-    dataclass, ``objective`` the config dataclass of the weighting it names (other weightings' parameters at their
-    defaults left out, :func:`objective_section`), ``policy`` the config dataclass of the head it names.
+def typed_config(config: Any) -> TrainConfig:
+    """The typed config of a job: Hydra's resolved ``DictConfig`` as it composed it (its nodes are these dataclasses
+    already), a copy of a :class:`TrainConfig`, or a plain dict of settings (a run's saved config, a test's):
+    each section its dataclass, ``objective`` the config dataclass of the weighting it names, ``policy`` the config
+    dataclass of the head it names.
 
-    Values are taken as they are: their checks are ``tar_rl.recipes.validate.validate``'s, which is how a
-    job's typed config is made. Settings the dict lacks take their defaults.
+    Values are taken as they are: their checks are ``TrainConfig.check`` and ``tar_rl.recipes.validate.validate``'s,
+    which is how a job's typed config is made. Settings a dict lacks take their defaults.
 
     Raises:
-        ConfigError: a setting no section has, or a head that is not registered.
+        ConfigError: a setting no section has, a head that is not registered, or not a config.
     """
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(config, DictConfig):
+        return OmegaConf.to_object(config)
+    if isinstance(config, TrainConfig):
+        return copy.deepcopy(config)
+    if not isinstance(config, dict):
+        raise ConfigError(f"expected a TrainConfig, a DictConfig or a dict, got {type(config).__name__}")
     values = copy.deepcopy(config)
+    values.pop("defaults", None)
+    values.pop("hydra", None)
     head = values.pop("policy", {})
     name = head.get("name")
     if name not in POLICIES:
         raise ConfigError(f"policy.name={name!r} is not valid; choose one of {list(POLICIES)}")
-    objective = objective_section(values.pop("objective", {}))
+    objective = values.pop("objective", {})
     weighting = objective.get("name", ObjectiveConfig.name)
     if weighting not in WEIGHTINGS:
         raise ConfigError(f"objective.name={weighting!r} is not valid; choose one of {list(WEIGHTINGS)}")

@@ -19,7 +19,7 @@ from tar_rl.runs import (
 from .builders import make_evaluation_pool, make_evaluator, make_policy
 from .config import typed_config
 from .errors import ConfigError
-from .rundir import with_defaults
+from .rundir import migrate_config, with_defaults
 from .validate import validate
 
 __all__ = ["evaluate_checkpoint", "policy_from_checkpoint"]
@@ -27,7 +27,7 @@ __all__ = ["evaluate_checkpoint", "policy_from_checkpoint"]
 
 def policy_from_checkpoint(state: dict, path: str | Path = "checkpoint") -> TensorDictModuleBase:
     """Rebuild the saved policy (EMA weights if the run kept them) for inference, on CPU."""
-    head = typed_config(state["config"]).policy
+    head = typed_config(migrate_config(state["config"])).policy
     policy = make_policy(head, DataInfo.from_dict(state["data_info"]))
     weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
     try:
@@ -60,7 +60,7 @@ def evaluate_checkpoint(
     """
     path = Path(path)
     state = load_checkpoint(path)
-    config = with_defaults(state["config"])
+    config = with_defaults(migrate_config(state["config"]))
     # Evaluating a saved policy needs neither its post-training source nor held-out data.
     config["init"] = {"from": None}
     config["diagnostics"]["heldout_demos"] = 0
@@ -71,9 +71,11 @@ def evaluate_checkpoint(
     if tasks:
         section["tasks"] = list(tasks)
     job = validate(config)
-    ev = job.config.eval
+    spec = job.evaluation
+    if spec is None:
+        raise ConfigError(f"{path}: the run's eval.rollouts is 0; give --rollouts (at least 1) to evaluate it")
     actor = policy_from_checkpoint(state, path)
-    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{ev.seed}.csv"
+    target = Path(out) if out else (path if path.is_dir() else path.parent) / f"eval-{spec.seed}.csv"
     try:  # before the rollouts, which a folder that cannot take their file would lose
         check_writable(target.parent)
         if target.is_dir():
@@ -81,10 +83,8 @@ def evaluate_checkpoint(
     except OSError as err:
         raise ConfigError(f"cannot write the rollouts to {target} ({err}); choose a writable file with --out") from None
     with make_evaluation_pool(job.suite) as pool:
-        rollouts_df = make_evaluator(ev, job.config.data, job.eval_tasks, pool, progress=progress, suite=job.suite)(
-            actor
-        )
+        rollouts_df = make_evaluator(spec, job.suite, job.eval_tasks, pool, progress=progress)(actor)
     write_csv_atomic(rollouts_df.assign(step=state["step"]), target)
-    print(f"{path} (step {state['step']}), {ev.rollouts} rollouts per task, seed {ev.seed}; rollouts in {target}")
+    print(f"{path} (step {state['step']}), {spec.rollouts} rollouts per task, seed {spec.seed}; rollouts in {target}")
     print_table(summarize(rollouts_df))
     return rollouts_df

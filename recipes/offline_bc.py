@@ -89,7 +89,7 @@ from .errors import ConfigError, TrainingError
 from .overrides import check_overrides
 from .record import demo_episodes, record_weights
 from .rundir import check_resumable, identity_differences, last_checkpoint, prepare_run_dir, run_name
-from .validate import Job, check_slice_len, resolve_config, validate
+from .validate import Job, check_slice_len, validate
 
 __all__ = ["Trainer", "hydra_main", "train"]
 
@@ -142,8 +142,8 @@ class Trainer:
         if resume is not None:
             _check_same_data(run_dir, resume, self.dataset)
         check_slice_len(cfg.data.slice_len, self.dataset)
-        if cfg.eval.rollouts:
-            SUITES[job.suite].check_dataset(self.dataset, cfg.eval.seed, cfg.eval.rollouts)
+        if job.evaluation is not None:
+            SUITES[job.suite].check_dataset(self.dataset, job.evaluation)
         self.info = DataInfo.from_metadata(self.dataset.metadata)
         self.policy = make_policy(cfg.policy, self.info)
         self.source = None
@@ -174,11 +174,11 @@ class Trainer:
         share = cfg.data.batch_segments // dist.world
         self.rows = slice(dist.rank * share, (dist.rank + 1) * share)
         self.pool = make_evaluation_pool(job.suite)  # e.g. the evaluations' worker processes, kept until run() ends
-        self.evaluator = None  # eval.rollouts=0: training only
-        if cfg.eval.rollouts:
+        self.evaluator = None  # no evaluation (eval.rollouts=0): training only
+        if job.evaluation is not None:
             shard = (dist.rank, dist.world)
             self.evaluator = make_evaluator(
-                cfg.eval, cfg.data, job.eval_tasks, self.pool, progress=self.progress, shard=shard, suite=job.suite
+                job.evaluation, job.suite, job.eval_tasks, self.pool, progress=self.progress, shard=shard
             )
         self.steps = cfg.optim.steps
         self.record_at = {self.steps if s == -1 else s for s in cfg.logging.record_weights_at} if dist.main else set()
@@ -461,13 +461,14 @@ class Trainer:
 _LOGGED = ("loss_tar", "uniform_loss", "tar_mix", "weight_max", "weight_ess")
 
 
-def _print_results(run_dir: Path, settings: TrainConfig, table: pd.DataFrame | None, skipped: int) -> None:
+def _print_results(run_dir: Path, job: Job, table: pd.DataFrame | None, skipped: int) -> None:
     """The finished run's last lines: its final evaluation (or that there was none) and its skipped steps."""
+    settings = job.config
     steps = settings.optim.steps
     if table is None:
         print(f"\n{run_dir}: {steps} steps; not evaluated (eval.rollouts=0)")
     else:
-        print(f"\n{run_dir}: {steps} steps, final evaluation ({settings.eval.rollouts} rollouts per task):")
+        print(f"\n{run_dir}: {steps} steps, final evaluation ({job.evaluation.rollouts} rollouts per task):")
         print_table(table)
     if skipped:
         print(
@@ -476,7 +477,7 @@ def _print_results(run_dir: Path, settings: TrainConfig, table: pd.DataFrame | N
         )
 
 
-def _complete(run_dir: Path, state: dict, settings: TrainConfig) -> None:
+def _complete(run_dir: Path, state: dict, job: Job) -> None:
     """Complete a run that ended after its final checkpoint but before its ``summary.json``: the logs and the
     summary as that checkpoint holds them (its final evaluation included), without evaluating again."""
     logs = RunLogs(run_dir, **state["logs"])
@@ -485,7 +486,7 @@ def _complete(run_dir: Path, state: dict, settings: TrainConfig) -> None:
     print(f"{run_dir}: finished ({state['step']} steps) but its summary was not written; written from its checkpoint")
     final = [row for row in logs.rollouts if row["step"] == state["step"]]
     table = summarize(pd.DataFrame(final)) if final else None
-    _print_results(run_dir, settings, table, state["skipped"])
+    _print_results(run_dir, job, table, state["skipped"])
 
 
 def _check_same_data(run_dir: Path, state: dict, dataset: DemoDataset) -> None:
@@ -537,7 +538,7 @@ def train(cfg: Any) -> Path:
             the device (the last good checkpoint is named).
         RunInterrupted: Ctrl-C during training (the step and the last checkpoint are named).
     """
-    job = validate(resolve_config(cfg))
+    job = validate(cfg)
     settings = job.config
     # The settings as the run folder holds them: its config.yaml, its name and the check made when resuming.
     config = config_dict(settings)
@@ -557,7 +558,7 @@ def train(cfg: Any) -> Path:
             return run_dir
         if resume is not None and resume.get("summary") is not None:
             if dist.main:
-                _complete(run_dir, resume, settings)
+                _complete(run_dir, resume, job)
             dist.barrier()
             return run_dir
         if dist.main:
@@ -574,7 +575,7 @@ def train(cfg: Any) -> Path:
             raise RunInterrupted(_interruption(run_dir, trainer, err)) from err
         if dist.main:
             write_json_atomic(trainer.summary, run_dir / SUMMARY_FILE)
-            _print_results(run_dir, settings, table, trainer.skipped)
+            _print_results(run_dir, job, table, trainer.skipped)
         del trainer  # its DDP model goes while the group lives; the barrier then lets gloo's threads finish
         dist.barrier()
         return run_dir

@@ -1,9 +1,9 @@
-"""The command line of ``tar-rl train`` checked before Hydra composes it: one line per problem, with a suggestion.
+"""The command line of ``tar-rl train`` as Hydra composes it, its errors in one line each, with a suggestion.
 
 Hydra refuses an unknown key, a value of the wrong type or an unknown group option with a report of several
-lines (its search path, the node's types). :func:`check_overrides` finds the same problems first and names each
-as ``<field>: <problem>``, with the closest valid name for a mistyped key or option (``objective=tarr``: did you
-mean 'tar'?). What it accepts, Hydra then composes as usual; ``hydra.*`` settings are Hydra's own and left to it.
+lines (its search path, the node's types). :func:`check_overrides` composes the command line as ``tar-rl train``
+does and names each problem Hydra finds as ``<field>: <problem>``, with the closest valid name for a mistyped key or
+option (``objective=tarr``: did you mean 'tar'?). ``hydra.*`` settings are Hydra's own and left to it.
 """
 
 from __future__ import annotations
@@ -22,11 +22,12 @@ from .config import (
     PRESETS,
     SECTIONS,
     TrainConfig,
+    int_rule,
     objective_config,
     register_configs,
+    setting_bounds,
 )
 from .errors import ConfigError
-from .validate import INT_SETTINGS, int_rule
 
 __all__ = ["check_overrides"]
 
@@ -76,29 +77,31 @@ def _suggest(key: str, names: set[str]) -> str:
     return f" (did you mean {tails[close[0]]!r}?)" if close else ""
 
 
-def _check_key(key: str, heads: list[str], objectives: list[str]) -> None:
-    """Refuse a key that names no setting; a head's setting must be one of every head chosen (``heads``), a
-    weighting's one of every objective chosen (``objectives``)."""
+def _key_problem(key: str, head: str, objective: str) -> str | None:
+    """What is wrong with a key that names no setting of the head and the ``objective`` option it is composed with
+    (None: it names one; what lies below a setting, a list's or a dict's item, is Hydra's to check)."""
     parts = key.split(".")
-    name = ".".join(parts[:2])  # a setting's value may be a list or a dict: what lies below it is Hydra's to check
+    name = ".".join(parts[:2])
     if parts[0] == "policy" and len(parts) > 1:
-        for head in heads:
-            known = _head_settings(head)
-            if name not in known:
-                raise ConfigError(f"{key}: the head {head!r} has no such setting{_suggest(name, known)}")
-        return
+        known = _head_settings(head)
+        return None if name in known else f"{key}: the head {head!r} has no such setting{_suggest(name, known)}"
     if parts[0] == "objective" and len(parts) > 1:
-        for option in objectives:
-            known = _objective_settings(option)
-            if name not in known:
-                owners = [w for w in WEIGHTINGS if name in _objective_settings(w)]
-                hint = f"; it is a setting of objective={'|'.join(owners)}" if owners else _suggest(name, known)
-                raise ConfigError(f"{key}: objective={option} has no such setting{hint}")
-        return
-    if name not in _settings():
-        known = _settings() | set(_groups()) | {name for head in heads for name in _head_settings(head)}
-        known |= {name for option in objectives for name in _objective_settings(option)}
-        raise ConfigError(f"{key}: no such setting{_suggest(key, known)}")
+        known = _objective_settings(objective)
+        if name in known:
+            return None
+        owners = [w for w in WEIGHTINGS if name in _objective_settings(w)]
+        hint = f"; it is a setting of objective={'|'.join(owners)}" if owners else _suggest(name, known)
+        return f"{key}: objective={objective} has no such setting{hint}"
+    if name in _settings():
+        return None
+    known = _settings() | set(_groups()) | _head_settings(head) | _objective_settings(objective)
+    return f"{key}: no such setting{_suggest(key, known)}"
+
+
+def _chosen(overrides: list[str]) -> tuple[str, str]:
+    """The head and the ``objective`` option a list of overrides composes (the defaults: ``mlp``, ``tar``)."""
+    chosen = dict(o.split("=", 1) for o in overrides if o.split("=", 1)[0] in ("policy", "objective"))
+    return chosen.get("policy", "mlp"), chosen.get("objective", "tar")
 
 
 def _problem(key: str, message: str) -> str:
@@ -112,16 +115,17 @@ def _problem(key: str, message: str) -> str:
         problem = f"{boolean.group(1)!r} is not {_KINDS['Boolean']}"
     else:
         problem = first
-    if key in INT_SETTINGS and problem.endswith("is not an integer"):
-        problem += f"; {key} must be {int_rule(*INT_SETTINGS[key])}"
+    bounds = setting_bounds(key)
+    if bounds is not None and problem.endswith("is not an integer"):
+        problem += f"; {key} must be {int_rule(*bounds)}"
     return f"{key}: {problem}"
 
 
 def _compose(overrides: list[str]) -> None:
     """Compose the config as ``tar-rl train`` does; what Hydra refuses becomes a :class:`ConfigError` of one line."""
     from hydra import compose, initialize
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
+    from hydra.errors import HydraException, MissingConfigException
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
     try:
         with initialize(version_base="1.3", config_path=None):
@@ -130,13 +134,26 @@ def _compose(overrides: list[str]) -> None:
         cause = err.__cause__ if isinstance(err.__cause__, OmegaConfBaseException) else err
         key = getattr(cause, "full_key", None)
         text = (getattr(cause, "msg", None) or str(err)).strip() or type(err).__name__
+        missing = re.match(r"In '\w+': Could not find '(\w+)/(.*)'", text)
+        if isinstance(err, MissingConfigException) and missing and missing.group(1) in _groups():
+            group, value = missing.groups()
+            options, hint = _groups()[group], did_you_mean(value, _groups()[group])
+            raise ConfigError(f"{group}: no option {value!r}{hint}; options: {', '.join(options)}") from None
+        if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and key:
+            # the override that names it (Hydra names the first part of it that is no setting)
+            given = [o.split("=", 1)[0].lstrip("+~") for o in overrides]
+            key = next((k for k in given if k == key or k.startswith(f"{key}.")), key)
+            problem = _key_problem(key, *_chosen(overrides))
+            if problem:
+                raise ConfigError(problem) from None
         if key:  # a list's item (policy.hidden[0]) is reported as its setting
             raise ConfigError(_problem(re.sub(r"\[\d+\]$", "", key), text)) from None
         raise ConfigError(text.splitlines()[0]) from None
 
 
 def check_overrides(argv: list[str]) -> None:
-    """Check the arguments of ``tar-rl train`` (Hydra's flags and overrides) before Hydra runs them.
+    """Check the arguments of ``tar-rl train`` (Hydra's flags and overrides) before Hydra runs them: compose them as
+    it will, and name what it refuses.
 
     Every value of a ``-m`` sweep is checked, each with the first value of every other sweep.
 
@@ -157,43 +174,23 @@ def check_overrides(argv: list[str]) -> None:
     except HydraException as err:
         raise ConfigError(str(err).strip().splitlines()[0]) from None
     parsed = [o for o in parsed if not (o.key_or_group == "hydra" or o.key_or_group.startswith(("hydra.", "hydra/")))]
-    groups = _groups()
     lines: list[list[str]] = []  # per override, the overrides it stands for: a sweep's one per value
-    values: list[list[str] | None] = []  # per override, its values; None: a value Hydra alone reads
     for override in parsed:
-        if override.is_sweep_override():
-            if not args.multirun:
-                raise ConfigError(
-                    f"{override.input_line}: several values run only as a sweep (add -m); a list is [a,b]"
-                )
-            try:
-                sweep = list(override.sweep_string_iterator())
-            except HydraException:  # an interval, for a sweeper that samples it
-                sweep = None
-            values.append(sweep)
-            lines.append(
-                [override.input_line] if sweep is None else [f"{override.get_key_element()}={v}" for v in sweep]
-            )
-        else:
-            values.append([str(override.value())])
+        if not override.is_sweep_override():
             lines.append([override.input_line])
-    heads, objectives = ["mlp"], ["tar"]  # the default head and weighting
-    for override, vals in zip(parsed, values):
-        key = override.key_or_group
-        if key in groups and vals is not None:
-            for value in vals:
-                if value not in groups[key]:
-                    options = groups[key]
-                    hint = did_you_mean(value, options)
-                    raise ConfigError(f"{key}: no option {value!r}{hint}; options: {', '.join(options)}")
-            if key == "policy":
-                heads = vals
-            if key == "objective":
-                objectives = vals
-    for override in parsed:
-        if override.key_or_group not in groups:
-            _check_key(override.key_or_group, heads, objectives)
+            continue
+        if not args.multirun:
+            raise ConfigError(f"{override.input_line}: several values run only as a sweep (add -m); a list is [a,b]")
+        try:
+            lines.append([f"{override.get_key_element()}={v}" for v in override.sweep_string_iterator()])
+        except HydraException:  # an interval, for a sweeper that samples it
+            lines.append([override.input_line])
     first = [options[0] for options in lines]
+    for override in parsed:  # Hydra adds a key no setting has (+key=value) to the config; tar-rl train has none
+        added = override.is_add() or override.is_force_add()
+        problem = _key_problem(override.key_or_group, *_chosen(first)) if added else None
+        if problem and override.key_or_group not in _groups():
+            raise ConfigError(problem)
     _compose(first)
     for i, options in enumerate(lines):
         for other in options[1:]:

@@ -20,7 +20,7 @@ from tar_rl.policies import DataInfo, Policy
 from tar_rl.policies.common import TaskEncoder
 from tar_rl.runs import CHECKPOINT, load_checkpoint
 
-from .rundir import run_name
+from .rundir import migrate_config, run_name
 
 __all__ = ["InitError", "Source", "apply_init", "check_fits", "load_source"]
 
@@ -88,14 +88,14 @@ def load_source(where: str) -> Source:
         weights = state["ema_policy"] if state.get("ema_policy") is not None else state["policy"]
         task_ids = tuple(int(i) for i in state["task_ids"])
         info = DataInfo.from_dict(state["data_info"])
-        config = state["config"]
+        config = migrate_config(state["config"])
         name = run_name(config)
     except (KeyError, TypeError, ValueError) as err:
         raise InitError(
             f"init.from={where}: the checkpoint lacks {err} (the policy, its data description or the task ids it "
             "was trained on); train the source again with this version of tar-rl"
         ) from None
-    return Source(file, name, int(state["step"]), state["config"], info, weights, task_ids, state.get("git_commit"))
+    return Source(file, name, int(state["step"]), config, info, weights, task_ids, state.get("git_commit"))
 
 
 def check_fits(source: Source, policy_name: str, policy: Policy, info: DataInfo) -> None:

@@ -1,84 +1,35 @@
 """The training job's settings checked before any work: the resolved config dict, :func:`validate` and its
-:class:`Job` (the typed config the builders and the loop read)."""
+:class:`Job` (the typed config the builders and the loop read, and its evaluation).
+
+Each section checks its own fields where it is defined (``TrainConfig.check``: the integer bounds beside the fields,
+the section's other rules in its ``check``); :func:`validate` adds the rules that span sections or need the suite,
+the dataset or the built head and objective."""
 
 from __future__ import annotations
 
 import copy
-import dataclasses
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from tar_rl.collectors.suites import SUITES, Suite, suite_for
+from tar_rl.collectors.suites import SUITES, EvalSpec, Suite, suite_for
 from tar_rl.data import DemoDataset
-from tar_rl.objectives import COMPILE_MODES, WEIGHTINGS, check_gripper_dims
+from tar_rl.objectives import WEIGHTINGS, check_gripper_dims
 from tar_rl.policies import POLICIES, DataInfo, Policy
 
 from . import diagnose, post_training
 from .builders import given_dataset, make_objective, make_policy, torch_device
-from .config import DEFAULT_TASKS, ObjectiveConfig, OptimConfig, TrainConfig, objective_params, typed_config
+from .config import DEFAULT_TASKS, ObjectiveConfig, TrainConfig, check_choice, check_int, config_dict, typed_config
 from .errors import ConfigError
 
-__all__ = ["INT_SETTINGS", "MAX_LR", "MAX_STEPS", "Job", "check_slice_len", "int_rule", "resolve_config", "validate"]
-
-#: The most optimiser steps a job may ask for (the paper trains 100K; a billion steps of the smallest head take
-#: weeks on a GPU): a larger count is a typo, refused before work rather than found out days later.
-MAX_STEPS = 1_000_000_000
-#: The largest peak learning rate: AdamW moves each weight by about ``lr`` per step, so a larger one makes
-#: the weights of these heads (of order 1) meaningless at the first step.
-MAX_LR = 1.0
-
-#: The integer settings with fixed bounds: ``(low, high)``, ``high`` None for none (``eval.horizon``'s bound is
-#: its suite's; ``data.workers`` and ``eval.workers`` may also be null).
-INT_SETTINGS: dict[str, tuple[int, int | None]] = {
-    "seed": (0, None),
-    "threads": (0, None),
-    "data.seed": (0, None),
-    "data.n_demos": (1, None),
-    "data.slice_len": (1, None),
-    "data.batch_segments": (1, None),
-    "data.chunk_horizon": (1, None),
-    "data.history": (1, None),
-    "data.image_size": (0, None),
-    "data.workers": (0, None),
-    "eval.seed": (0, None),
-    "eval.rollouts": (0, None),
-    "eval.every": (0, None),
-    "eval.workers": (0, None),
-    "optim.steps": (1, MAX_STEPS),
-    "optim.warmup": (0, None),
-    "optim.skip_nonfinite": (0, None),
-    "logging.every": (1, None),
-    "logging.checkpoint_every": (1, None),
-    "logging.record_episodes": (1, None),
-    "diagnostics.heldout_demos": (0, None),
-    "diagnostics.heldout_seed": (0, None),
-    "diagnostics.train_episodes": (1, None),
-    "diagnostics.bins": (2, None),
-}
-_NULLABLE = ("data.workers", "eval.workers")
-
-
-def int_rule(low: int, high: int | None) -> str:
-    """What an integer setting of these bounds must be, in words (``an integer >= 0``)."""
-    return f"an integer between {low} and {high}" if high is not None else f"an integer >= {low}"
+__all__ = ["Job", "check_slice_len", "resolve_config", "validate"]
 
 
 def resolve_config(cfg: Any) -> dict:
-    """A plain dict of the job's settings from a Hydra ``DictConfig``, a :class:`TrainConfig` or a dict."""
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(cfg, DictConfig):
-        config = OmegaConf.to_container(cfg, resolve=True)
-    elif dataclasses.is_dataclass(cfg):
-        config = dataclasses.asdict(cfg)
-    elif isinstance(cfg, dict):
-        config = copy.deepcopy(cfg)
-    else:
-        raise ConfigError(f"expected a TrainConfig, a DictConfig or a dict, got {type(cfg).__name__}")
-    config.pop("defaults", None)
-    config.pop("hydra", None)
-    return config
+    """A plain dict of the job's settings from a Hydra ``DictConfig``, a :class:`TrainConfig` or a dict (a copy, its
+    values unchecked)."""
+    if isinstance(cfg, dict):
+        return {key: copy.deepcopy(value) for key, value in cfg.items() if key not in ("defaults", "hydra")}
+    return config_dict(typed_config(cfg))
 
 
 @dataclass(frozen=True)
@@ -91,23 +42,15 @@ class Job:
         eval_tasks: the evaluated tasks (``eval.tasks`` resolved, or the training tasks); empty when
             ``eval.rollouts=0``.
         suite: the suite evaluating the job, or the source of a ``data.path`` dataset no simulator here has.
+        evaluation: what the suite's evaluator runs (the ``eval`` section's rollouts, seed, horizon and workers, the
+            dataset's image size and given folder); None when ``eval.rollouts=0``.
     """
 
     config: TrainConfig
     train_tasks: tuple[str, ...]
     eval_tasks: tuple[str, ...]
     suite: str
-
-
-def _check_int(name: str, value, low: int, high: int | None = None) -> None:
-    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
-    if not ok:
-        raise ConfigError(f"{name} must be {int_rule(low, high)}, got {value!r}")
-
-
-def _check_choice(name: str, value, choices: Sequence[str]) -> None:
-    if value not in choices:
-        raise ConfigError(f"{name}={value!r} is not valid; choose one of {list(choices)}")
+    evaluation: EvalSpec | None = None
 
 
 def _resolve_tasks(suite: Suite, name: str, spec: list[str]) -> tuple[str, ...]:
@@ -119,28 +62,38 @@ def _resolve_tasks(suite: Suite, name: str, spec: list[str]) -> tuple[str, ...]:
         raise ConfigError(f"{name}: {err}") from None
 
 
-def validate(config: dict) -> Job:
-    """Check every setting of a job before any work; the typed config (:func:`typed_config`) and its tasks.
+def validate(config: Any) -> Job:
+    """Check every setting of a job before any work: each section's own (``TrainConfig.check``), then the rules that
+    span sections; the typed config (:func:`typed_config`), its tasks and its evaluation.
 
     Args:
-        config: the job's settings as a plain dict (:func:`resolve_config`'s, or a run's saved config); it is
-            not changed.
+        config: the job's settings: Hydra's resolved ``DictConfig``, a :class:`TrainConfig`, or a plain dict
+            (:func:`resolve_config`'s, or a run's saved config); it is not changed.
 
     Raises:
         ConfigError: naming the setting and the valid choices or range.
     """
     cfg = typed_config(config)
-    _check_objective(cfg.objective)
+    cfg.check()
     _check_signal(cfg.objective, cfg.policy.name)
     suite, given, tasks = _check_suite_and_tasks(cfg)
-    _check_numbers(cfg, suite)
+    check_int("eval.horizon", cfg.eval.horizon, 1, suite.max_horizon if suite is not None else None)
+    for step in cfg.logging.record_weights_at:
+        if not (step == -1 or (isinstance(step, int) and 1 <= step <= cfg.optim.steps)):
+            raise ConfigError(
+                f"logging.record_weights_at: {step!r} is not a step in 1..{cfg.optim.steps} (or -1, the last)"
+            )
     if given is not None:
         check_slice_len(cfg.data.slice_len, given)
     else:
         _check_slice_len_before_collection(cfg.data.slice_len, suite)
     torch_device(cfg.device)
     _check_diagnostics(cfg)
-    _check_seeds(cfg, suite, given)
+    ev, data = cfg.eval, cfg.data  # the evaluator's settings, built once: the suites read these, not the sections
+    evaluation = None
+    if ev.rollouts:
+        evaluation = EvalSpec(ev.rollouts, ev.seed, ev.horizon, ev.workers, data.image_size, data.path)
+    _check_seeds(cfg, evaluation, suite, given)
     # The objective and the head are built once on placeholder data (or the given dataset's
     # description) so that their own checks run now.
     try:
@@ -165,30 +118,7 @@ def validate(config: dict) -> Job:
         except ValueError as err:
             raise ConfigError(f"objective.{err}") from None
     _check_init(cfg, policy, placeholder)
-    return Job(cfg, **tasks)
-
-
-def _check_objective(obj: ObjectiveConfig) -> None:
-    _check_choice("objective.name", obj.name, list(WEIGHTINGS))
-    _check_choice("objective.shape", obj.shape, ["linear", "cosine"])
-    _check_choice("objective.compile", obj.compile, list(COMPILE_MODES))
-    if not 0 <= obj.start < 1:
-        never = " (the weighting would start after the last step: TAR would never reach full strength)"
-        raise ConfigError(
-            f"objective.start is a fraction of optim.steps and must lie in [0, 1), got {obj.start}"
-            + (never if obj.start >= 1 else "")
-        )
-    if not 0 <= obj.ramp <= 1:
-        raise ConfigError(f"objective.ramp is a fraction of optim.steps and must lie in [0, 1], got {obj.ramp}")
-    if obj.start + obj.ramp > 1 + 1e-9:
-        raise ConfigError(
-            f"objective.start + objective.ramp must be <= 1 (the ramp ends by the last step), got {obj.start} + "
-            f"{obj.ramp} = {obj.start + obj.ramp:g}: TAR would never reach full strength; lower one of them"
-        )
-    try:  # the weighting's parameters check themselves; their message names the parameter
-        objective_params(obj)
-    except ValueError as err:
-        raise ConfigError(f"objective.{err}") from None
+    return Job(cfg, **tasks, evaluation=evaluation)
 
 
 def _check_signal(obj: ObjectiveConfig, head: str) -> None:
@@ -215,7 +145,7 @@ def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset 
     (``data.path``, opened and checked) and the resolved tasks (:class:`Job`'s ``train_tasks``, ``eval_tasks``
     and ``suite``)."""
     data, ev = cfg.data, cfg.eval
-    _check_choice("data.suite", data.suite, SUITES.names())
+    check_choice("data.suite", data.suite, SUITES.names())
     given = given_dataset(data.path) if data.path else None
     try:
         suite = suite_for(data.suite, given)
@@ -285,57 +215,28 @@ def _check_slice_len_before_collection(slice_len: int, suite: Suite) -> None:
         )
 
 
-def _check_numbers(cfg: TrainConfig, suite: Suite | None) -> None:
-    ev, opt, log = cfg.eval, cfg.optim, cfg.logging
-    for name, (low, high) in INT_SETTINGS.items():
-        node = cfg
-        for part in name.split("."):
-            node = getattr(node, part)
-        if not (node is None and name in _NULLABLE):
-            _check_int(name, node, low, high)
-    _check_int("eval.horizon", ev.horizon, 1, suite.max_horizon if suite is not None else None)
-    for step in log.record_weights_at:
-        if not (step == -1 or (isinstance(step, int) and 1 <= step <= opt.steps)):
-            raise ConfigError(f"logging.record_weights_at: {step!r} is not a step in 1..{opt.steps} (or -1, the last)")
-    _check_optim(opt)
-
-
-def _check_optim(opt: OptimConfig) -> None:
-    if not 0 < opt.lr <= MAX_LR:
-        raise ConfigError(f"optim.lr must be a number in (0, {MAX_LR:g}], got {opt.lr}")
-    _check_choice("optim.decay", opt.decay, ["cosine", "constant"])
-    if not 0 <= opt.min_lr_ratio <= 1:
-        raise ConfigError(f"optim.min_lr_ratio must lie in [0, 1], got {opt.min_lr_ratio}")
-    if opt.grad_clip < 0:
-        raise ConfigError(f"optim.grad_clip must be >= 0 (0: off), got {opt.grad_clip}")
-    if not 0 <= opt.ema < 1:
-        raise ConfigError(f"optim.ema is a decay in [0, 1) (0: off), got {opt.ema}")
-    if len(opt.betas) != 2 or not all(0 <= b < 1 for b in opt.betas):
-        raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {opt.betas}")
-
-
 def _check_diagnostics(cfg: TrainConfig) -> None:
-    """The held-out seeds against the training and evaluation ones (the group's numbers are in :data:`INT_SETTINGS`)."""
+    """The held-out seeds against the training and evaluation ones (the group's numbers are its own check)."""
     try:
         diagnose.check_heldout_seeds(cfg)
     except ValueError as err:
         raise ConfigError(str(err)) from None
 
 
-def _check_seeds(cfg: TrainConfig, suite: Suite | None, given: DemoDataset | None) -> None:
+def _check_seeds(cfg: TrainConfig, evaluation: EvalSpec | None, suite: Suite | None, given: DemoDataset | None) -> None:
     """Demonstration and evaluation variations never overlap: checked on the largest number of attempts
     collection may make, before collecting; on a given dataset, on the seeds it used."""
-    data, ev = cfg.data, cfg.eval
-    if not ev.rollouts:
+    data = cfg.data
+    if evaluation is None:
         return
     try:
         if given is not None:
-            suite.check_dataset(given, ev.seed, ev.rollouts)
+            suite.check_dataset(given, evaluation)
         else:
-            suite.check_seeds(data, ev)
+            suite.check_seeds(data.seed, data.n_demos, evaluation)
     except ValueError as err:
         where = f"data.path={data.path}" if given is not None else f"data.seed={data.seed}"
-        raise ConfigError(f"{where} and eval.seed={ev.seed}: {err}") from None
+        raise ConfigError(f"{where} and eval.seed={evaluation.seed}: {err}") from None
 
 
 def _check_init(cfg: TrainConfig, policy: Policy, info: DataInfo) -> None:

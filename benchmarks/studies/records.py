@@ -140,22 +140,29 @@ def collect(src: Path, out: Path, keep_checkpoint: Sequence[str] = (), keep_weig
     (:func:`tar_rl.runs.portable_summary`).
 
     Each copy is named by its identity as this code computes it from the run's config (a run trained
-    by code that named runs otherwise gets its current name; its summary's ``run_name`` follows)."""
+    by code that named runs otherwise gets its current name; its summary's ``run_name`` follows). A config written
+    by an older version (every weighting's parameters in its objective section) is copied, in the config file and
+    the summary, as this version writes it (:func:`tar_rl.recipes.rundir.migrate_config`, what
+    ``benchmarks/migrate_configs.py`` did to the committed runs)."""
     import yaml
 
     from tar_rl.recipes import run_name
+    from tar_rl.recipes.rundir import migrate_config
 
     copied = []
     for run in sorted(p for p in src.iterdir() if (p / "summary.json").is_file()):
         summary = json.loads((run / "summary.json").read_text())
         if not summary.get("finished"):
             continue
-        name = run_name(yaml.safe_load((run / runs.CONFIG_FILE).read_text()))
+        saved = migrate_config(yaml.safe_load((run / runs.CONFIG_FILE).read_text()))
+        name = run_name(saved)
         target = out / "runs" / name
         if (target / "summary.json").is_file():
             continue
+        if isinstance(summary.get("config"), dict):
+            summary["config"] = migrate_config(summary["config"])
         try:
-            config = runs.portable_config(yaml.safe_load((run / runs.CONFIG_FILE).read_text()), REPO)
+            config = runs.portable_config(saved, REPO)
             summary = runs.portable_summary(summary, REPO)
         except ValueError as err:
             raise SystemExit(f"collect: {run.name}: {err}") from None

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 from tar_rl.data import DemoDataset
 
-from ..suite import Suite
+from ..suite import EvalSpec, Suite
 from . import tasks as mw_tasks
 from .dataset import build_dataset, check_disjoint
 from .demos import ACTION_DIM, HORIZON
@@ -38,13 +38,13 @@ class MetaWorldSuite(Suite):
     def eval_seeds(self, seed: int, rollouts: int) -> set[int]:
         return set(mw_tasks.variation_seeds(seed, rollouts))
 
-    def check_seeds(self, data, ev) -> None:
+    def check_seeds(self, seed: int, n_demos: int, spec: EvalSpec) -> None:
         mw_tasks.check_disjoint(
-            sorted(self.demo_seeds(data.seed, data.n_demos)), sorted(self.eval_seeds(ev.seed, ev.rollouts))
+            sorted(self.demo_seeds(seed, n_demos)), sorted(self.eval_seeds(spec.seed, spec.rollouts))
         )
 
-    def check_dataset(self, dataset: DemoDataset, eval_seed: int, rollouts: int) -> None:
-        check_disjoint(dataset, eval_seed, rollouts)
+    def check_dataset(self, dataset: DemoDataset, spec: EvalSpec) -> None:
+        check_disjoint(dataset, spec.seed, spec.rollouts)
 
     def build_dataset(self, data, tasks: Sequence[str], n_demos: int, seed: int, progress: bool):
         return build_dataset(
@@ -63,20 +63,20 @@ class MetaWorldSuite(Suite):
         return RolloutPool()
 
     def evaluate(
-        self, ev, data, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
+        self, spec: EvalSpec, actor, tasks: Sequence[str], progress: bool, shard: tuple[int, int], pool: RolloutPool
     ):
-        workers = ev.workers
+        workers = spec.workers
         if workers is None and shard[1] > 1:
             workers = max(1, (os.cpu_count() or 1) // shard[1])
         return evaluate(
             actor,
             list(tasks),
-            rollouts_per_task=ev.rollouts,
-            seed=ev.seed,
-            horizon=ev.horizon,
+            rollouts_per_task=spec.rollouts,
+            seed=spec.seed,
+            horizon=spec.horizon,
             workers=workers,
             progress=progress,
             shard=shard,
-            image_size=data.image_size if "pixels" in actor.in_keys else 0,
+            image_size=spec.image_size if "pixels" in actor.in_keys else 0,
             pool=pool,
         )

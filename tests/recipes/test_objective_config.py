@@ -2,8 +2,8 @@
 
 * ``objective=<name>`` composes the weighting's own settings (generated from ``WEIGHTINGS[name].params``) and
   nothing of another weighting's; a preset (``objective=tar_gentle``) works on the command line too.
-* A run's name does not change: every committed run under ``benchmarks/results`` (configs that list every
-  weighting's parameters) maps to its folder's name.
+* A run's name does not change: every committed run under ``benchmarks/results`` maps to its folder's name, and a
+  config saved by an older version (every weighting's parameters listed) migrates to the run it names.
 * The default job (``tar-rl train``: TAR at gamma 1, w_max 3, eps 1e-8, the paper cap, the paper's schedule
   fractions) computes Eq. 2 with ``tar_weights`` bit for bit, and agrees with the plain-Python reference.
 """
@@ -26,6 +26,7 @@ from tar_rl.objectives import WEIGHTINGS, MixSchedule, PerturbedTarget, tar_weig
 from tar_rl.policies import DataInfo
 from tar_rl.recipes import ConfigError, identity, make_objective, make_policy, run_name, validate
 from tar_rl.recipes.config import ObjectiveConfig, objective_config, typed_config
+from tar_rl.recipes.rundir import migrate_config
 
 COMMON = {f.name for f in dataclasses.fields(ObjectiveConfig)}
 
@@ -66,16 +67,20 @@ def test_tar_gentle_preset_on_the_command_line(capsys):
     assert values == ("tar", 0.5, "exact", 1.5, 1e-8)
 
 
-def test_other_weightings_parameters_at_their_defaults_are_not_part_of_a_run():
+def test_a_config_saved_with_every_weightings_parameters_migrates_to_the_run_it_names():
     config = compose_config("objective=tar", "objective.gamma=2")
     listed = json.loads(json.dumps(config))
     listed["objective"] |= {"focal_beta": 1.0, "dro_bins": 10, "gripper_dims": [-1], "perturb_scale": 0.1}
-    assert run_name(listed) == run_name(config) and identity(listed) == {"objective": {"gamma": 2.0}}
-    validate(listed)  # read as the run it names
-    listed["objective"]["focal_beta"] = 2.0  # another weighting's parameter at another value: named, and refused
-    assert run_name(listed) != run_name(config)
     with pytest.raises(ConfigError, match="focal_beta"):
-        validate(listed)
+        validate(listed)  # the typed config reads this version's format only
+    migrated = migrate_config(listed)
+    assert migrated == config and migrate_config(migrated) == migrated
+    assert run_name(migrated) == run_name(config) and identity(migrated) == {"objective": {"gamma": 2.0}}
+    listed["objective"]["focal_beta"] = 2.0  # another weighting's parameter at another value: kept, and refused
+    assert migrate_config(listed)["objective"]["focal_beta"] == 2.0
+    assert run_name(migrate_config(listed)) != run_name(config)
+    with pytest.raises(ConfigError, match="focal_beta"):
+        validate(migrate_config(listed))
 
 
 def test_every_committed_run_keeps_its_name():

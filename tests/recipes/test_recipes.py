@@ -44,7 +44,7 @@ from tar_rl.recipes import (
     train,
     validate,
 )
-from tar_rl.recipes.config import PRESETS, register_configs, typed_config
+from tar_rl.recipes.config import PRESETS, ObjectiveConfig, register_configs, typed_config
 from tar_rl.runs import CHECKPOINT, WEIGHTS_COLUMNS, RunLogs, load_checkpoint, weights_columns
 
 # -- Config -------------------------------------------------------------------------------------
@@ -823,7 +823,9 @@ def test_report_compares_the_smoke_runs(smoke_run, data_root, tmp_path, capsys):
     from tar_rl.report import main as report_main
 
     run_dir, config = smoke_run
-    baseline = train({**config, "objective": {**config["objective"], "name": "uniform"}})
+    common = {f.name for f in dataclasses.fields(ObjectiveConfig)}  # the settings uniform shares with tar
+    uniform = {key: value for key, value in config["objective"].items() if key in common}
+    baseline = train({**config, "objective": {**uniform, "name": "uniform"}})
     assert baseline.parent == run_dir.parent and baseline.name.startswith("uniform-mlp-s0-")
     out = tmp_path / "report"
     assert report_main([str(run_dir.parent), "--out", str(out)]) == 0
