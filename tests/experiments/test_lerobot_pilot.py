@@ -3,7 +3,8 @@ plugin's policy server (``lerobot-tar serve``), against chunks computed in LeRob
 checkpoint's network and statistics and executed by a fresh ``ChunkedActor``; and the pilot's printed commands.
 
 The rollouts need the plugin's environment, ``.venv-lerobot/`` at the repository root (``lerobot_policy_tar/env.sh``
-builds it; ``LEROBOT_PYTHON`` names another Python of it); without it they are skipped, saying so.
+builds it; ``LEROBOT_PYTHON`` names another Python of it); without it they are skipped, saying so
+(tar-rl's own pytest run, before CI builds it), and ``lerobot_policy_tar/test.sh`` runs this file once it is built.
 """
 
 from __future__ import annotations
