@@ -15,7 +15,7 @@ from paths import REPO
 from benchmarks.studies import baselines, cli, paper, regimes, tuning
 from benchmarks.studies.core import Arm, Grid, Planner, Scale, plan_digest, seed_major
 from benchmarks.studies.records import check_started
-from benchmarks.studies.stages import stage_specs
+from benchmarks.studies.stages import Digest, plan, stage_grids, stage_specs
 
 PLANNED = json.loads((Path(__file__).parent / "planned_runs.json").read_text())
 COMMITTED = REPO / "benchmarks" / "results" / "regimes"
@@ -183,3 +183,48 @@ def test_a_stage_whose_runs_failed_exits_non_zero(jobs, tmp_path, data_root):
     names = ", ".join(spec.run_dir.name for spec in specs)
     assert f"{len(specs)} run(s) failed: " in done.stdout and all(s.run_dir.name in done.stdout for s in specs), names
 
+
+def _digests(ctx, study) -> dict[str, str]:
+    """Each recorded stage's plan digest as its declaration plans it now, under the name its record files it by."""
+    out = {}
+    for stage in study.stages.values():
+        if isinstance(stage.records, Digest):
+            grids = [stage.records.of(ctx)] if stage.records.of else stage_grids(ctx, stage) or []
+            out.update({grid.name: plan_digest(grid.specs(ctx.planner)) for grid in grids})
+    return out
+
+
+@pytest.mark.slow  # composes every committed study's plan at the cpu scale: about a minute
+@pytest.mark.parametrize("study", ["regimes", "why_act", "tuning", "baselines"])
+def test_the_committed_studies_recompute_their_records_and_run_names(study):
+    """Every committed study at the cpu scale, planned by its declared stages from its committed records: each plan
+    digest its ``started`` records hold recomputes, and every committed run folder is a run the stages plan (by
+    name: a renamed run would not be collected into it, nor found by the tables)."""
+    mod = cli.load(study)
+    ctx = cli.context(mod, ["plan"])
+    planned = {s.run_dir.name for specs in plan(ctx).values() for s in specs}
+    planned |= {s.run_dir.name for stage in mod.stages.values() for s in stage_specs(ctx, stage, trained=True) or []}
+    if study == "regimes":  # R1's source and R2's screening run, which the stages train before their gates
+        planned |= {s.run_dir.name for s in stage_specs(ctx, regimes.STAGES["r1"].first[0])}
+        planned |= {s.run_dir.name for s in stage_specs(ctx, regimes.STAGES["r2-screen"])}
+        started = json.loads((ctx.out / "r2_started.json").read_text())
+        screened = json.loads((ctx.out / "screening.json").read_text())
+        assert started == {"tasks": screened["tasks"], "digest": screened["digest"]}
+    records = {}
+    for path in ctx.out.glob("*started.json"):
+        if path.name != "r2_started.json":
+            records.update(json.loads(path.read_text()))
+    assert bool(records) == (study in ("regimes", "why_act"))
+    digests = _digests(ctx, mod)
+    assert {key: digests[key] for key in records} == records
+    committed = {p.name for p in (ctx.out / "runs").iterdir() if p.is_dir()}
+    assert committed and committed <= planned, sorted(committed - planned)
+
+
+def test_the_recorded_digests_are_the_ones_committed():
+    """The digests R4's, R5's and R6's placement runs started with (the runs R6 trains now are collected by them)."""
+    assert json.loads((COMMITTED / "chunked_started.json").read_text()) == {
+        "R4": "519e5635200b4c2a",
+        "R5": "aaf63c1da10507c5",
+    }
+    assert json.loads((COMMITTED / "r6" / "started.json").read_text())["placement"] == "746c15c91d5ef103"
