@@ -256,6 +256,7 @@ def run_stage(ctx: Context, stage: Stage) -> list[Spec]:
     gate says so), its plan, its record (``--dry-run``: checked, not written), then its action or its runs (finished
     ones skipped; ``--dry-run``: listed with the time estimate) and what it writes from them. Returns the runs that
     failed, the first stages' included."""
+    tree = ctx.tree  # a bad --tree is refused before anything is planned or recorded
     failed = [spec for first in stage.first for spec in run_stage(ctx, first)]
     records, missing = _records(ctx, stage)
     if missing is not None:
@@ -275,7 +276,7 @@ def run_stage(ctx: Context, stage: Stage) -> list[Spec]:
     if ctx.study.announce:
         print(f"\n== {stage.name} (scale {ctx.scale.name}: {ctx.scale.about})")
     specs = _in_order(ctx, stage.trains(ctx, grids, *records) if stage.trains is not None else grids)
-    failed += execute(ctx.scale, specs, stage.jobs or ctx.jobs, dry, ctx.logs, tree=ctx.tree)
+    failed += execute(ctx.scale, specs, stage.jobs or ctx.jobs, dry, ctx.logs, tree=tree)
     if stage.then is not None:
         stage.then(ctx, specs)
     return failed
