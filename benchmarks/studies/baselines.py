@@ -23,38 +23,39 @@ from __future__ import annotations
 import argparse
 import io
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
 
 from benchmarks.studies import regimes
-from benchmarks.studies.cli import RESULTS, Context, Study, tables_dir
+from benchmarks.studies.cli import RESULTS, tables_dir
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_frame, holm_into
-from benchmarks.studies.core import Arm, Planner, Spec, Stage, seed_major
+from benchmarks.studies.core import Arm, Grid, Planner, Spec
 from benchmarks.studies.protocol import BASELINE, TREATMENT
 from benchmarks.studies.records import provenance, reproduces
-from benchmarks.studies.sweep import execute
+from benchmarks.studies.stages import Context, Stage, Study, named, plan
 from benchmarks.studies.writers import controls_markdown, fit_markdown, fmt_p, write_outputs
 
-__all__ = ["STUDY", "WEIGHTINGS", "fit_table", "table_markdown"]
+__all__ = ["STAGES", "STUDY", "WEIGHTINGS", "fit_table", "table_markdown"]
 
 WEIGHTINGS = ("tilted", "truncate", "keyframe", "focal", "dro_time")
 
 
-def stage(sizes: regimes.RegimeSizes, weightings=WEIGHTINGS) -> Stage:
+def baselines_grid(sizes: regimes.RegimeSizes, weightings=WEIGHTINGS) -> Grid:
     """The baselines' runs at R3's settings and seeds."""
     arms = tuple(Arm.objective(w) for w in weightings)
-    return Stage("baselines", "the literature's weightings in R3", sizes.r3, arms, sizes.scale.seeds)
+    return Grid("baselines", "the literature's weightings in R3", sizes.r3, arms, sizes.scale.seeds)
 
 
-def uniform_stage(sizes: regimes.RegimeSizes) -> Stage:
+def uniform_grid(sizes: regimes.RegimeSizes) -> Grid:
     """Uniform's runs at R3's settings and seeds, trained beside the baselines."""
-    return Stage("uniform", "uniform beside the baselines", sizes.r3, (Arm.objective(BASELINE),), sizes.scale.seeds)
+    return Grid("uniform", "uniform beside the baselines", sizes.r3, (Arm.objective(BASELINE),), sizes.scale.seeds)
 
 
 def r3_runs(sizes: regimes.RegimeSizes, regimes_out: Path) -> dict[str, list[Spec]]:
     """R3's committed runs (uniform and TAR) as the regime study plans them, by objective."""
-    return regimes.r3_stage(sizes).specs(Planner(sizes.scale, regimes_out, "datasets"))
+    return regimes.r3_grid(sizes).specs(Planner(sizes.scale, regimes_out, "datasets"))
 
 
 def fit_table(runs: list) -> pd.DataFrame:
@@ -119,20 +120,20 @@ def table_markdown(runs: list, uniform_source: str, reproduction: str) -> tuple[
     return "\n".join(md) + "\n", {"table.csv": summary, "paired.csv": paired, "fit.csv": fit}
 
 
-def plan(ctx: Context) -> dict[str, list[Spec]]:
-    """Uniform's runs beside the baselines and the baselines' runs."""
-    return {
-        "uniform": uniform_stage(ctx.sizes).specs(ctx.planner)[BASELINE],
-        "baselines": seed_major(stage(ctx.sizes, ctx.args.weightings).specs(ctx.planner)),
-    }
+def _uniform_first(ctx: Context, grids: list[Grid]) -> list[Grid]:
+    """Uniform's seed 0 (the reproduction check), every uniform seed with ``--uniform``, then the baselines."""
+    uniform, baselines = grids
+    return [uniform if ctx.args.uniform else replace(uniform, seeds=uniform.seeds[:1]), baselines]
 
 
-def run(ctx: Context, name: str) -> list[Spec]:
-    """The stage (module docstring); returns the runs that failed."""
-    planned = plan(ctx)
-    uniform = planned["uniform"]
-    specs = [*(uniform if ctx.args.uniform else uniform[:1]), *planned["baselines"]]
-    return execute(ctx.scale, specs, ctx.jobs, ctx.args.dry_run, ctx.logs)
+STAGES = named(
+    Stage(
+        "baselines",
+        "uniform's seed 0 again (every seed with --uniform), then the baselines, seed by seed",
+        grids=lambda ctx: [uniform_grid(ctx.sizes), baselines_grid(ctx.sizes, ctx.args.weightings)],
+        trains=_uniform_first,
+    ),
+)
 
 
 def table(ctx: Context) -> None:
@@ -195,9 +196,7 @@ STUDY = Study(
     name="baselines",
     about="The baselines from the literature in R3.",
     scales=regimes.SIZES,
-    stages=("baselines",),
-    plan=plan,
-    run=run,
+    stages=STAGES,
     table=table,
     results=lambda scale: "regimes/baselines" if scale == "cpu" else None,
     options=_options,

@@ -10,7 +10,8 @@
 * ``collect --from DIR``: copy the finished runs of a runs folder (a sweep trained elsewhere) into ``<out>/runs``
   (:func:`benchmarks.studies.records.collect`).
 
-A study is a :class:`Study`: its scales, stages and table, declared in its own module (:data:`STUDIES`).
+A study is a :class:`.stages.Study`: its scales, its stages (declarations, :class:`.stages.Stage`) and its table,
+declared in its own module (:data:`STUDIES`); :func:`.stages.run_stage` runs any stage.
 """
 
 from __future__ import annotations
@@ -18,14 +19,15 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from benchmarks.studies.core import Planner, Scale, Spec
+from benchmarks.studies.core import Planner
+from benchmarks.studies.stages import Context, Study, plan, run_stage
 
-__all__ = ["RESULTS", "STUDIES", "Context", "Study", "main"]
+__all__ = ["RESULTS", "STUDIES", "context", "main"]
 
 #: The committed results folder of the studies.
 RESULTS = Path(__file__).resolve().parent.parent / "results"
@@ -39,60 +41,6 @@ STUDIES = {
     "flow_signal": "benchmarks.studies.flow_signal",
 }
 COMMANDS = ("plan", "run", "table", "collect")
-
-
-@dataclass
-class Context:
-    """One command of a study: the parsed command line, the study's sizes at the scale, the planner, the results
-    folder and the runs trained at once."""
-
-    study: Study
-    args: argparse.Namespace
-    argv: list[str]
-    sizes: Any
-    scale: Scale
-    planner: Planner
-    out: Path
-    jobs: int
-
-    @property
-    def logs(self) -> Path:
-        """Where the subprocesses of a parallel sweep write their output."""
-        return self.out / "logs"
-
-
-@dataclass(frozen=True)
-class Study:
-    """A study as the command line sees it.
-
-    Attributes:
-        name: its name on the command line.
-        about: one line on what it is.
-        scales: the study's sizes by scale name (each with its :class:`Scale` as ``.scale``).
-        stages: the names of its stages (``run STAGE``).
-        plan: every stage's planned runs that can be planned now, by stage.
-        run: trains a stage (``ctx``, stage name) and returns the runs that failed.
-        table: writes the tables and figures.
-        results: the default results folder at a scale (relative to ``benchmarks/results``); ``None`` where
-            ``--out`` is required.
-        options: adds the study's own options to the parser.
-        with_options: the sizes with the command line's options applied (``--seeds`` and the study's own).
-        keep_checkpoint: run names whose checkpoint ``collect`` keeps.
-        keep_weights: run names whose ``weights.csv`` ``collect`` keeps (the runs an analysis reads).
-    """
-
-    name: str
-    about: str
-    scales: dict[str, Any]
-    stages: tuple[str, ...]
-    plan: Callable[[Context], dict[str, list[Spec]]]
-    run: Callable[[Context, str], list[Spec]]
-    table: Callable[[Context], None]
-    results: Callable[[str], str | None]
-    options: Callable[[argparse.ArgumentParser], None] = lambda parser: None
-    with_options: Callable[[Any, argparse.Namespace], Any] = lambda sizes, args: sizes
-    keep_checkpoint: Callable[[Context], list[str]] = field(default=lambda ctx: [])
-    keep_weights: Callable[[Context], list[str]] = field(default=lambda ctx: [])
 
 
 def ints(text: str) -> tuple[int, ...]:
@@ -172,7 +120,7 @@ def tables_dir(ctx: Context) -> Path:
 
 def print_plan(ctx: Context) -> None:
     """Every stage's planned runs, finished or to run."""
-    for stage, specs in ctx.study.plan(ctx).items():
+    for stage, specs in plan(ctx).items():
         done = sum(s.finished for s in specs)
         print(f"{stage}: {len(specs)} runs, {done} finished")
         for s in specs:
@@ -208,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         if stage not in study.stages:
             raise SystemExit(f"studies: {study.name} run needs a stage, one of {', '.join(study.stages)}")
-        failed = study.run(ctx, stage)
+        failed = run_stage(ctx, study.stages[stage])
         if failed:
             print(f"\n{len(failed)} run(s) failed: " + ", ".join(s.run_dir.name for s in failed))
             return 1

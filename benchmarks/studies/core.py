@@ -1,10 +1,10 @@
-"""What a study trains: a scale, arms, stages, run specs and the planner that composes them.
+"""What a study trains: a scale, arms, grids, run specs and the planner that composes them.
 
 A *scale* holds the overrides every run of a study shares at one size (``cpu``, ``ci``, ...) and its time model.
-An *arm* is a name and the overrides that make it (an objective, a TAR cell). A *stage* trains arms x seeds over a
-base of overrides; the planner turns each (arm, seed) into a :class:`Spec`: the composed, validated config of the
-offline BC recipe and the run directory it names (``<out>/runs/<run name>``), so that running a stage again skips
-its finished runs and resumes an interrupted one.
+An *arm* is a name and the overrides that make it (an objective, a TAR cell). A *grid* is arms x seeds over a base
+of overrides; the planner turns each (arm, seed) into a :class:`Spec`: the composed, validated config of the
+offline BC recipe and the run directory it names (``<out>/runs/<run name>``), so that running a grid again skips
+its finished runs and resumes an interrupted one. A stage (:mod:`.stages`) trains one grid or several.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["Arm", "Planner", "Scale", "Spec", "Stage", "plan_digest", "seed_major"]
+__all__ = ["Arm", "Grid", "Planner", "Scale", "Spec", "plan_digest", "seed_major"]
 
 
 @dataclass(frozen=True)
@@ -81,35 +81,58 @@ class Arm:
 
 
 @dataclass(frozen=True)
-class Stage:
+class Grid:
     """Arms x seeds over a base: the run of arm ``a`` and seed ``s`` has the overrides ``(*base, seed=s,
-    *a.overrides)`` (with ``seed_last``: ``(*base, *a.overrides, seed=s)``).
+    *a.overrides)`` (with ``seed_last``: ``(*base, *a.overrides, seed=s)``; a seed ``None``: ``(*base,
+    *a.overrides)``, the base naming the seed).
 
     Attributes:
-        name: the stage's name on the command line (``run NAME``).
+        name: the label its runs are listed under by ``plan`` (grids of one stage may share it) and recorded under
+            when its runs start (:class:`.stages.Digest`).
         about: one line on what it trains.
-        base: the overrides every run of the stage shares (after the scale's).
+        base: the overrides every run of the grid shares (after the scale's).
         arms: the settings compared.
         seeds: the training seeds.
         seed_last: the seed's override after the arm's.
+        reused: the ``(arm, seed)`` runs planned in another study's folder, ``reused_from`` (runs that study trained
+            and this grid pairs with its own).
+        reused_from: that folder (``<folder>/runs`` holds the runs).
     """
 
     name: str
     about: str
     base: tuple[str, ...]
     arms: tuple[Arm, ...]
-    seeds: tuple[int, ...]
+    seeds: tuple[int | None, ...]
     seed_last: bool = False
+    reused: frozenset[tuple[str, int]] = frozenset()
+    reused_from: Path | None = None
 
-    def overrides(self, arm: Arm, seed: int) -> tuple[str, ...]:
+    @classmethod
+    def single(cls, name: str, overrides: tuple[str, ...]) -> Grid:
+        """One run of exactly ``overrides`` (its seed among them)."""
+        return cls(name, "one run", overrides, (Arm(name, ()),), (None,))
+
+    def overrides(self, arm: Arm, seed: int | None) -> tuple[str, ...]:
         """The overrides of one run (after the scale's)."""
+        if seed is None:
+            return (*self.base, *arm.overrides)
         if self.seed_last:
             return (*self.base, *arm.overrides, f"seed={seed}")
         return (*self.base, f"seed={seed}", *arm.overrides)
 
     def specs(self, planner: Planner) -> dict[str, list[Spec]]:
         """The runs per arm, seeds in order."""
-        return {arm.name: [planner.spec(*self.overrides(arm, s)) for s in self.seeds] for arm in self.arms}
+        elsewhere = planner
+        if self.reused:
+            elsewhere = Planner(planner.scale, self.reused_from, planner.data_root, planner.extra)
+        return {
+            arm.name: [
+                (elsewhere if (arm.name, s) in self.reused else planner).spec(*self.overrides(arm, s))
+                for s in self.seeds
+            ]
+            for arm in self.arms
+        }
 
 
 def seed_major(specs: dict[str, list[Spec]]) -> list[Spec]:

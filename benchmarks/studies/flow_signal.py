@@ -45,20 +45,21 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.studies import sweep
-from benchmarks.studies.cli import Context, Study, with_seeds
+from benchmarks.studies.cli import with_seeds
 from benchmarks.studies.compare import FINAL_SHARE, Comparison, check_pairs, contrasts, finished_runs, stage_fits
-from benchmarks.studies.core import Arm, Scale, Spec, Stage, seed_major
+from benchmarks.studies.core import Arm, Grid, Scale, Spec, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS
-from benchmarks.studies.records import check_stage_plan, read_json
+from benchmarks.studies.records import read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
-from benchmarks.studies.sweep import execute
+from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
 from benchmarks.studies.writers import comparison_lines, fit_markdown, fmt_num, group_lines, write_outputs
 
 __all__ = [
     "CANDIDATES",
     "COMPARISONS",
     "SIZES",
+    "STAGES",
     "STUDY",
     "Candidate",
     "SignalSizes",
@@ -183,12 +184,11 @@ def candidate_means(table: pd.DataFrame, seeds: Sequence[int]) -> dict[str, dict
 # -- The stages ------------------------------------------------------------------------------------------
 
 
-def pilot_specs(ctx: Context) -> dict[str, list[Spec]]:
+def pilot_grid(sizes: SignalSizes) -> Grid:
     """The pilot: uniform at R5's settings on the tuning evaluation seed, per time sampling, the pilot's seeds."""
-    sizes = ctx.sizes
     base = (*sizes.base, f"eval.seed={sizes.pilot_eval_seed}", "objective=uniform")
     arms = tuple(Arm(t, (f"policy.time_sampling={t}",)) for t in TIMES)
-    return Stage("pilot", "uniform flow per time sampling", base, arms, sizes.pilot_seeds).specs(ctx.planner)
+    return Grid("pilot", "uniform flow per time sampling", base, arms, sizes.pilot_seeds)
 
 
 def selection(ctx: Context) -> dict | None:
@@ -196,30 +196,14 @@ def selection(ctx: Context) -> dict | None:
     return read_json(ctx.out / SELECTION_FILE)
 
 
-def r7_specs(ctx: Context, key: str) -> dict[str, list[Spec]] | None:
-    """R7's runs per arm with candidate ``key``: R5's settings with its time sampling and signal, the three arms,
-    R7's seeds; None for (a) (R7 is R5)."""
+def r7_grid(sizes: SignalSizes, key: str) -> Grid:
+    """R7's runs with candidate ``key`` (not (a), with which R7 is R5): R5's settings with its time sampling and
+    signal, the three arms, R7's seeds."""
     c = BY_KEY[key]
-    if c.key == "a":
-        return None
-    base = (*ctx.sizes.base, *([f"policy.time_sampling={c.time_sampling}"] if c.time_sampling != "step" else []))
+    base = (*sizes.base, *([f"policy.time_sampling={c.time_sampling}"] if c.time_sampling != "step" else []))
     signal = (f"objective.signal={c.signal}",) if c.signal != "loss" else ()
     arms = tuple(Arm(a, (f"objective={a}", *signal)) for a in CHUNKED_ARMS)
-    return Stage("r7", f"R5 with {c.about}", base, arms, ctx.sizes.scale.seeds).specs(ctx.planner)
-
-
-def stage_specs(ctx: Context, stage: str) -> dict[str, list[Spec]] | None:
-    """A training stage's runs per arm, or None where none is planned (``r7`` before ``selection.json`` or when it
-    selects (a))."""
-    if stage == "pilot":
-        return pilot_specs(ctx)
-    record = selection(ctx)
-    return None if record is None else r7_specs(ctx, record["candidate"])
-
-
-def check_plan(ctx: Context, key: str, specs: dict[str, list[Spec]], record: bool) -> None:
-    """Refuse a stage's plan that differs from the one its runs started with; with ``record``, record it."""
-    check_stage_plan(ctx.out / STARTED_FILE, WHO, key, specs, record)
+    return Grid("r7", f"R5 with {c.about}", base, arms, sizes.scale.seeds)
 
 
 def pilot_success(specs: dict[str, list[Spec]]) -> dict[str, dict[int, float]]:
@@ -257,11 +241,12 @@ def write_noise_table(ctx: Context, specs: dict[str, list[Spec]], tree: Path | N
     return path
 
 
-def run_select(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
+def run_select(ctx: Context) -> list[Spec]:
     """``select`` (module docstring): the pilot's noise table if it is not there yet, else the selection."""
     from tar_rl.io import write_json_atomic
     from tar_rl.report import load_run
 
+    dry = ctx.args.dry_run
     started = read_json(ctx.out / STARTED_FILE) or {}
     record_path, table_path = ctx.out / SELECTION_FILE, ctx.out / NOISE_FILE
     if "r7" in started:
@@ -269,8 +254,7 @@ def run_select(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
             f"{WHO}: R7's runs started with the selection in {record_path} ({started['r7']} in "
             f"{ctx.out / STARTED_FILE}); the selection may not be written again once they started"
         )
-    specs = pilot_specs(ctx)
-    check_plan(ctx, "pilot", specs, record=False)
+    specs = stage_arms(ctx, STAGES["pilot"])
     missing = [s.run_dir.name for s in seed_major(specs) if not s.finished]
     if missing:
         raise SystemExit(f"{WHO}: the pilot's runs are not all finished ({', '.join(missing)}); run `pilot` first")
@@ -279,7 +263,7 @@ def run_select(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
         if dry:
             print(f"select would write the pilot's noise table {table_path}, then stop")
             return []
-        write_noise_table(ctx, specs, tree)
+        write_noise_table(ctx, specs, ctx.tree)
         print(
             f"\nthe pilot's noise table is in {table_path} (and .md). The plan commits it before the selection: "
             f"commit it, then run `select` again, which applies the rule to it and writes {record_path}"
@@ -369,12 +353,11 @@ def stage_runs(ctx: Context, stage: str, complete: bool) -> tuple[dict[str, dict
         SystemExit: the plan changed after its runs started; with ``complete``, a run of the plan is missing, or R7
             has no selection yet.
     """
-    specs = stage_specs(ctx, stage)
+    specs = stage_arms(ctx, STAGES[stage])
     if specs is None:
         if complete and stage == "r7" and selection(ctx) is None:
             raise SystemExit(f"{WHO}: R7 has no selection yet ({ctx.out / SELECTION_FILE}): run `select` first")
         return {}, []
-    check_plan(ctx, stage, specs, record=False)
     return finished_runs(specs, WHO, stage, complete)
 
 
@@ -400,7 +383,7 @@ def pilot_rows(ctx: Context) -> list[dict]:
     """The pilot's finished runs: uniform's overall success per time sampling and seed on the tuning seed."""
     return [
         {"time_sampling": t, "seed": seed, "success": v}
-        for t, by_seed in pilot_success(pilot_specs(ctx)).items()
+        for t, by_seed in pilot_success(pilot_grid(ctx.sizes).specs(ctx.planner)).items()
         for seed, v in sorted(by_seed.items())
     ]
 
@@ -476,34 +459,40 @@ def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -
 # -- The study -------------------------------------------------------------------------------------------
 
 
-def plan(ctx: Context) -> dict[str, list[Spec]]:
-    """Every training stage's planned runs that can be planned now, by stage."""
-    out = {}
-    for stage in ("pilot", "r7"):
-        specs = stage_specs(ctx, stage)
-        if specs is not None:
-            out[stage] = seed_major(specs)
-    return out
+def _trains_r7(ctx: Context) -> dict | None:
+    record = selection(ctx)
+    return record if record is not None and record["train_r7"] else None
 
 
-def run(ctx: Context, stage: str) -> list[Spec]:
-    """Run one stage (module docstring); returns the runs that failed."""
-    dry, tree = ctx.args.dry_run, sweep.check_tree(ctx.args.tree, WHO)
-    if stage == "select":
-        return run_select(ctx, dry, tree)
-    if stage == "r7":
-        record = selection(ctx)
-        if record is None:
-            raise SystemExit(
-                f"{WHO}: R7's runs are planned once the selection is recorded ({ctx.out / SELECTION_FILE}); run "
-                "`select` first"
-            )
-        if not record["train_r7"]:
-            print(f"{record['note']} ({ctx.out / SELECTION_FILE}): nothing to run")
-            return []
-    specs = stage_specs(ctx, stage)
-    check_plan(ctx, stage, specs, record=not dry)
-    return execute(ctx.scale, seed_major(specs), ctx.jobs, dry, ctx.logs, tree=tree)
+SELECTED = Gate(
+    "the selection record",
+    read=selection,
+    missing=lambda ctx: (
+        f"{WHO}: R7's runs are planned once the selection is recorded ({ctx.out / SELECTION_FILE}); run `select` first"
+    ),
+)
+TRAINS_R7 = Gate(
+    "a selection other than (a) (with (a), R7 is R5)",
+    read=_trains_r7,
+    missing=lambda ctx: f"{selection(ctx)['note']} ({ctx.out / SELECTION_FILE}): nothing to run",
+    stop=True,
+)
+STAGES = named(
+    Stage(
+        "pilot",
+        "uniform flow at R5's settings per time sampling, on the tuning evaluation seed",
+        grids=lambda ctx: [pilot_grid(ctx.sizes)],
+        records=Digest(STARTED_FILE),
+    ),
+    Stage("select", "the pilot's noise table, then the selection by the rule", action=run_select),
+    Stage(
+        "r7",
+        "R5 with the selected candidate: uniform, tar, tar_gentle",
+        grids=lambda ctx, _, record: [r7_grid(ctx.sizes, record["candidate"])],
+        gates=(SELECTED, TRAINS_R7),
+        records=Digest(STARTED_FILE),
+    ),
+)
 
 
 def table(ctx: Context) -> None:
@@ -526,7 +515,7 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 def keep_weights(ctx: Context) -> list[str]:
     """Seed 0's runs of every R7 arm (the weights of each arm on one seed)."""
-    specs = stage_specs(ctx, "r7") or {}
+    specs = stage_arms(ctx, STAGES["r7"], check=False) or {}
     return [group[0].run_dir.name for group in specs.values() if group]
 
 
@@ -534,9 +523,7 @@ STUDY = Study(
     name=WHO,
     about="TAR for a sampled loss: R7, a ranking signal for the flow head chosen on a pilot, against uniform.",
     scales=SIZES,
-    stages=("pilot", "select", "r7"),
-    plan=plan,
-    run=run,
+    stages=STAGES,
     table=table,
     results=lambda scale: "regimes/r7" if scale == "cpu" else None,
     options=_options,

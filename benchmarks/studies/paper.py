@@ -29,15 +29,14 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, replace
 
-from benchmarks.studies.cli import Context, Study, names
-from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
+from benchmarks.studies.cli import names
+from benchmarks.studies.core import Arm, Grid, Scale
 from benchmarks.studies.protocol import BASELINE, EIGHT_TASKS, PAIR, TREATMENT
 from benchmarks.studies.records import provenance
-from benchmarks.studies.sweep import execute
+from benchmarks.studies.stages import Context, Stage, Study, named, stage_specs
 
-__all__ = ["PAPER_FAMILIES", "SIZES", "STUDY", "PaperSizes"]
+__all__ = ["PAPER_FAMILIES", "SIZES", "STAGES", "STUDY", "PaperSizes"]
 
-STAGES = ("protocol", "controls", "budget", "sensitivity")
 REPORTS = ("table", "controls", "critical_windows", "budget", "sensitivity")
 # The paper's five families (ACT, Octo linear, Octo diffusion, a flow head, and the MLP reference).
 PAPER_FAMILIES = ("mlp", "act", "octo_linear", "octo_diffusion", "flow")
@@ -159,33 +158,33 @@ SIZES: dict[str, PaperSizes] = {
 # -- The stages ------------------------------------------------------------------------------------------
 
 
-def protocol_stages(sizes: PaperSizes) -> list[Stage]:
+def protocol_grids(sizes: PaperSizes) -> list[Grid]:
     """Per family, uniform and TAR on the protocol's seeds."""
     return [
-        Stage("protocol", f"{f}: uniform, tar", (f"policy={f}",), PAIR, sizes.scale.seeds, True) for f in sizes.families
+        Grid("protocol", f"{f}: uniform, tar", (f"policy={f}",), PAIR, sizes.scale.seeds, True) for f in sizes.families
     ]
 
 
-def controls_stage(sizes: PaperSizes) -> Stage:
+def controls_grid(sizes: PaperSizes) -> Grid:
     """The control family with every weighting of the paper's Table III, on the control seeds."""
     from tar_rl.objectives import WEIGHTINGS
     from tar_rl.report import OBJECTIVE_ORDER
 
     arms = tuple(Arm.objective(o) for o in OBJECTIVE_ORDER if o in WEIGHTINGS)
     base = (f"policy={sizes.control_family}",)
-    return Stage("controls", "the paper's weightings", base, arms, sizes.control_seeds, True)
+    return Grid("controls", "the paper's weightings", base, arms, sizes.control_seeds, True)
 
 
-def budget_stages(sizes: PaperSizes) -> list[Stage]:
+def budget_grids(sizes: PaperSizes) -> list[Grid]:
     """Per demonstration budget, uniform and TAR on the budget seeds."""
     f = sizes.control_family
     return [
-        Stage("budget", f"{n} demos", (f"policy={f}", f"data.n_demos={n}"), PAIR, sizes.budget_seeds, True)
+        Grid("budget", f"{n} demos", (f"policy={f}", f"data.n_demos={n}"), PAIR, sizes.budget_seeds, True)
         for n in sizes.budget_demos
     ]
 
 
-def sensitivity_stage(sizes: PaperSizes) -> Stage:
+def sensitivity_grid(sizes: PaperSizes) -> Grid:
     """Uniform and TAR over the grid, on the tuning evaluation seed."""
     cells = tuple(
         Arm(
@@ -197,18 +196,7 @@ def sensitivity_stage(sizes: PaperSizes) -> Stage:
         for c in sizes.sens_cap
     )
     base = (f"policy={sizes.control_family}", f"eval.seed={sizes.sens_eval_seed}")
-    return Stage("sensitivity", "the TAR grid", base, (Arm.objective(BASELINE), *cells), sizes.sens_seeds)
-
-
-def stage_specs(sizes: PaperSizes, planner: Planner, stage: str) -> list[Spec]:
-    """The runs of a stage, in the order they train (each stage's seeds one by one)."""
-    stages = {
-        "protocol": lambda: protocol_stages(sizes),
-        "controls": lambda: [controls_stage(sizes)],
-        "budget": lambda: budget_stages(sizes),
-        "sensitivity": lambda: [sensitivity_stage(sizes)],
-    }[stage]()
-    return [spec for s in stages for spec in seed_major(s.specs(planner))]
+    return Grid("sensitivity", "the TAR grid", base, (Arm.objective(BASELINE), *cells), sizes.sens_seeds)
 
 
 def check_families(families) -> None:
@@ -226,20 +214,13 @@ def check_families(families) -> None:
 # -- The study -------------------------------------------------------------------------------------------
 
 
-def plan(ctx: Context) -> dict[str, list[Spec]]:
-    """Every stage's runs."""
-    check_families((*ctx.sizes.families, ctx.sizes.control_family))
-    return {stage: stage_specs(ctx.sizes, ctx.planner, stage) for stage in STAGES}
-
-
-def run(ctx: Context, stage: str) -> list[Spec]:
-    """Train one stage, or every one with ``all``; returns the runs that failed."""
-    check_families((*ctx.sizes.families, ctx.sizes.control_family))
-    failed = []
-    for name in STAGES if stage == "all" else (stage,):
-        print(f"\n== {name} (scale {ctx.scale.name}: {ctx.scale.about})")
-        failed += execute(ctx.scale, stage_specs(ctx.sizes, ctx.planner, name), ctx.jobs, ctx.args.dry_run, ctx.logs)
-    return failed
+_EACH = (
+    Stage("protocol", "policy families x {uniform, tar}", grids=lambda ctx: protocol_grids(ctx.sizes)),
+    Stage("controls", "the paper's weightings on the control family", grids=lambda ctx: [controls_grid(ctx.sizes)]),
+    Stage("budget", "uniform and TAR per demonstration budget", grids=lambda ctx: budget_grids(ctx.sizes)),
+    Stage("sensitivity", "TAR's grid and uniform, tuning seed", grids=lambda ctx: [sensitivity_grid(ctx.sizes)]),
+)
+STAGES = named(*_EACH, Stage("all", "the four stages in this order", first=_EACH))
 
 
 def table(ctx: Context) -> None:
@@ -247,7 +228,6 @@ def table(ctx: Context) -> None:
     from benchmarks.studies import paper_tables as t
 
     sizes, prov = ctx.sizes, provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
-    check_families((*sizes.families, sizes.control_family))
     writers = {
         "table": lambda specs, folder: t.report_table(specs, folder, prov),
         "controls": lambda specs, folder: t.report_controls(specs, folder, prov, sizes.control_family),
@@ -259,7 +239,7 @@ def table(ctx: Context) -> None:
         stage = "protocol" if report in ("table", "critical_windows") else report
         folder = ctx.out / report
         t.start_output(folder, prov)
-        writers[report](stage_specs(sizes, ctx.planner, stage), folder)
+        writers[report](stage_specs(ctx, STAGES[stage]), folder)
 
 
 def _reports(text: str) -> tuple[str, ...]:
@@ -285,6 +265,7 @@ def _with_options(sizes: PaperSizes, args: argparse.Namespace) -> PaperSizes:
         sizes = replace(sizes, fig5_tasks=args.fig5_tasks)
     if args.families is not None:
         sizes = replace(sizes, families=args.families, control_family=args.families[0])
+    check_families((*sizes.families, sizes.control_family))
     return sizes
 
 
@@ -292,11 +273,10 @@ STUDY = Study(
     name="paper",
     about="The paper's experiments: runs via the offline BC recipe, then tables and figures.",
     scales=SIZES,
-    stages=(*STAGES, "all"),
-    plan=plan,
-    run=run,
+    stages=STAGES,
     table=table,
     results=lambda scale: f"paper-{scale}",
     options=_options,
     with_options=_with_options,
+    announce=True,
 )

@@ -31,14 +31,14 @@ from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.studies.cli import Context, Study, ints, tables_dir, with_seeds
-from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
+from benchmarks.studies.cli import ints, tables_dir, with_seeds
+from benchmarks.studies.core import Arm, Grid, Planner, Scale, Spec, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS, EIGHT_TASKS, PAIR, SOURCE_TASKS
-from benchmarks.studies.records import check_stage_plan, check_started, provenance, read_json
+from benchmarks.studies.records import check_started, provenance, read_json
 from benchmarks.studies.regimes_table import Planned, write_tables
-from benchmarks.studies.sweep import execute
+from benchmarks.studies.stages import Context, Digest, Gate, Record, Stage, Study, named, plan, stage_arms
 
-__all__ = ["SIZES", "STUDY", "RegimeSizes", "chunked_base"]
+__all__ = ["SIZES", "STAGES", "STUDY", "RegimeSizes", "chunked_base", "chunked_grid", "r3_grid"]
 
 CHUNKED_STARTED_FILE = "chunked_started.json"
 SCREENING_FILE, STARTED_FILE = "screening.json", "r2_started.json"
@@ -213,24 +213,26 @@ _CI = RegimeSizes(
 SIZES = {"cpu": _CPU, "ci": _CI}
 
 
-# -- The stages ------------------------------------------------------------------------------------------
+# -- The grids -------------------------------------------------------------------------------------------
 
 
-def r1_stage(sizes: RegimeSizes, source: Spec, budget: int) -> Stage:
-    """R1's pairs at one budget from ``source`` (which must have finished: its checkpoint is read)."""
+def r1_grid(sizes: RegimeSizes, source: Spec, budget: int) -> Grid:
+    """R1's pairs at one budget from ``source`` (which must have finished: its checkpoint is read), listed as ``R1``
+    at the primary budget and ``R1-10`` at the others."""
     base = (*sizes.r1, f"data.n_demos={budget}", f"init.from={source.run_dir}")
-    return Stage(f"r1-{budget}", "post-training from the pretrained source", base, PAIR, sizes.scale.seeds)
+    label = "R1" if budget == sizes.r1_budgets[0] else "R1-10"
+    return Grid(label, "post-training from the pretrained source", base, PAIR, sizes.scale.seeds)
 
 
-def r2_stage(sizes: RegimeSizes, tasks: Sequence[str]) -> Stage:
+def r2_grid(sizes: RegimeSizes, tasks: Sequence[str]) -> Grid:
     """R2's pairs on the screened tasks."""
     base = (*sizes.r2, f"data.tasks=[{','.join(tasks)}]")
-    return Stage("r2", "the pairs on the screened tasks", base, PAIR, sizes.scale.seeds)
+    return Grid("R2", "the pairs on the screened tasks", base, PAIR, sizes.scale.seeds)
 
 
-def r3_stage(sizes: RegimeSizes) -> Stage:
+def r3_grid(sizes: RegimeSizes) -> Grid:
     """R3's pairs: MT50, 50 demonstrations per task, about 20 passes."""
-    return Stage("r3", "the pairs on MT50, 50 demonstrations per task", sizes.r3, PAIR, sizes.scale.seeds)
+    return Grid("R3", "the pairs on MT50, 50 demonstrations per task", sizes.r3, PAIR, sizes.scale.seeds)
 
 
 def chunked_base(sizes: RegimeSizes, label: str) -> tuple[str, ...]:
@@ -242,24 +244,18 @@ def chunked_base(sizes: RegimeSizes, label: str) -> tuple[str, ...]:
     raise SystemExit(f"regimes: no chunked-heads regime {label!r} at this scale")
 
 
-def chunked_stage(sizes: RegimeSizes, label: str) -> Stage:
+def chunked_grid(sizes: RegimeSizes, label: str) -> Grid:
     """The chunked-heads regime ``label`` (``R4``, ``R5``): R3's data with its head, the three
     :data:`.protocol.CHUNKED_ARMS`."""
     base = chunked_base(sizes, label)
     head = chunked_heads(sizes)[label]
     arms = tuple(Arm.objective(a) for a in CHUNKED_ARMS)
-    about = f"the chunked head {head}: {', '.join(CHUNKED_ARMS)}"
-    return Stage(label.lower(), about, base, arms, sizes.scale.seeds)
+    return Grid(label, f"the chunked head {head}: {', '.join(CHUNKED_ARMS)}", base, arms, sizes.scale.seeds)
 
 
 def chunked_heads(sizes: RegimeSizes) -> dict[str, str]:
     """The chunked-heads regimes' heads by regime."""
     return {regime: head for regime, head, _ in sizes.chunked_heads}
-
-
-def pairs(stage: Stage, planner: Planner) -> list[Spec]:
-    """A stage's runs seed by seed (each seed's arms together)."""
-    return seed_major(stage.specs(planner))
 
 
 def source_spec(sizes: RegimeSizes, planner: Planner) -> Spec:
@@ -271,14 +267,14 @@ def weights_read(sizes: RegimeSizes, planner: Planner) -> list[str]:
     """The runs whose ``weights.csv`` an analysis reads: R3's, every seed (``python -m benchmarks.analysis
     diagnosis``), and seed 0 of each arm of the chunked-heads regimes (R4, R5: the weights of each arm on one
     seed)."""
-    names = [spec.run_dir.name for spec in pairs(r3_stage(sizes), planner)]
+    names = [spec.run_dir.name for spec in seed_major(r3_grid(sizes).specs(planner))]
     for label in chunked_heads(sizes):
-        specs = chunked_stage(sizes, label).specs(planner)
+        specs = chunked_grid(sizes, label).specs(planner)
         names += [group[0].run_dir.name for group in specs.values() if group]
     return names
 
 
-# -- The records of R2's screening and of the chunked plans ---------------------------------------------
+# -- The record of R2's screening ------------------------------------------------------------------------
 
 
 def screening(out: Path) -> list[str] | None:
@@ -343,74 +339,94 @@ def check_r2_started(out: Path, tasks: Sequence[str]) -> None:
     check_started(out / STARTED_FILE, {"tasks": list(tasks), "digest": _digest(tasks)}, True, refusal)
 
 
-def check_plan_started(out: Path, label: str, specs: dict[str, list[Spec]], record: bool) -> None:
-    """Refuse a chunked-heads plan that differs from the one its runs started with (``chunked_started.json``);
-    with ``record``, record the plan when it is the regime's first."""
-    check_stage_plan(out / CHUNKED_STARTED_FILE, "regimes", label, specs, record)
-
-
 # -- The study -------------------------------------------------------------------------------------------
 
 
-def plan(ctx: Context) -> dict[str, list[Spec]]:
-    """Every regime's planned runs (R1 needs its source to have finished, R2 its screening list), by regime."""
-    sizes, planner = ctx.sizes, ctx.planner
-    plans: dict[str, list[Spec]] = {}
-    source = source_spec(sizes, planner)
-    if source.finished:
-        plans["R1"] = pairs(r1_stage(sizes, source, sizes.r1_budgets[0]), planner)
-        plans["R1-10"] = [s for n in sizes.r1_budgets[1:] for s in pairs(r1_stage(sizes, source, n), planner)]
-    tasks = screening(ctx.out)
-    if tasks is not None:
-        plans["R2"] = pairs(r2_stage(sizes, tasks), planner)
-    plans["R3"] = pairs(r3_stage(sizes), planner)
-    for label in chunked_heads(sizes):
-        plans[label] = pairs(chunked_stage(sizes, label), planner)
-    return plans
+class ScreenedTasks(Record):
+    """R2's record when its comparison runs start: the screened task list (``r2_started.json``), which may not
+    change after."""
+
+    def check(self, ctx: Context, key: str, arms: dict, records: Sequence, record: bool) -> None:
+        """Record the list the stage's gate read (``records[0]``) when its runs start; refuse one that differs."""
+        if record:
+            check_r2_started(ctx.out, records[0])
 
 
-def run(ctx: Context, stage: str) -> list[Spec]:
-    """Train one stage (module docstring); returns the runs that failed."""
-    sizes, planner, out, dry = ctx.sizes, ctx.planner, ctx.out, ctx.args.dry_run
-    scale, logs = sizes.scale, ctx.logs
-    if stage == "r1":
-        source = source_spec(sizes, planner)
-        failed = execute(scale, [source], 1, dry, logs)
-        if not source.finished:
-            print("R1's source has not finished: its post-training runs are planned once it has")
-            return failed
-        budgets = ctx.args.budgets or sizes.r1_budgets
-        specs = [s for n in budgets for s in pairs(r1_stage(sizes, source, n), planner)]
-        return failed + execute(scale, specs, ctx.jobs, dry, logs)
-    if stage == "r2-screen":
-        spec = planner.spec(*sizes.screen)
-        failed = execute(scale, [spec], 1, dry, logs)
-        if spec.finished:
-            print(f"R2's tasks: {write_screening(sizes, spec, out)} ({out / SCREENING_FILE})")
-        return failed
-    if stage == "r2":
-        tasks = screening(out)
-        if tasks is None:
-            raise SystemExit(f"regimes: no {out / SCREENING_FILE} yet; run `r2-screen` first")
-        specs = pairs(r2_stage(sizes, tasks), planner)
-        if not dry:
-            check_r2_started(out, tasks)
-        return execute(scale, specs, ctx.jobs, dry, logs)
-    if stage == "r3":
-        return execute(scale, pairs(r3_stage(sizes), planner), ctx.jobs, dry, logs)
-    specs = chunked_stage(sizes, stage.upper()).specs(planner)
-    check_plan_started(out, stage.upper(), specs, record=not dry)
-    return execute(scale, seed_major(specs), ctx.jobs, dry, logs)
+def _source(ctx: Context) -> Spec | None:
+    spec = source_spec(ctx.sizes, ctx.planner)
+    return spec if spec.finished else None
+
+
+def _budgets(ctx: Context, grids: list[Grid], source: Spec) -> list[Grid]:
+    """R1's grids at ``--budgets`` where given, in that order."""
+    return [r1_grid(ctx.sizes, source, n) for n in ctx.args.budgets] if ctx.args.budgets else grids
+
+
+def _screening_list(ctx: Context, specs: list[Spec]) -> None:
+    (spec,) = specs
+    if spec.finished:
+        print(f"R2's tasks: {write_screening(ctx.sizes, spec, ctx.out)} ({ctx.out / SCREENING_FILE})")
+
+
+SOURCE = Stage(
+    "source",
+    "R1's pretraining run, trained alone",
+    grids=lambda ctx: [Grid.single("source", ctx.sizes.source)],
+    jobs=1,
+    planned=False,
+)
+SOURCE_FINISHED = Gate(
+    "R1's finished source",
+    read=_source,
+    missing=lambda ctx: "R1's source has not finished: its post-training runs are planned once it has",
+    stop=True,
+)
+SCREENED = Gate(
+    "the screening record",
+    read=lambda ctx: screening(ctx.out),
+    missing=lambda ctx: f"regimes: no {ctx.out / SCREENING_FILE} yet; run `r2-screen` first",
+)
+STAGES = named(
+    Stage(
+        "r1",
+        "post-training from the pretrained source, per demonstration budget",
+        grids=lambda ctx, source: [r1_grid(ctx.sizes, source, n) for n in ctx.sizes.r1_budgets],
+        gates=(SOURCE_FINISHED,),
+        first=(SOURCE,),
+        trains=_budgets,
+    ),
+    Stage(
+        "r2-screen",
+        "the screening run, trained alone, and the list of R2's tasks",
+        grids=lambda ctx: [Grid.single("screen", ctx.sizes.screen)],
+        jobs=1,
+        then=_screening_list,
+        planned=False,
+    ),
+    Stage(
+        "r2",
+        "the pairs on the screened tasks",
+        grids=lambda ctx, tasks: [r2_grid(ctx.sizes, tasks)],
+        gates=(SCREENED,),
+        records=ScreenedTasks(),
+    ),
+    Stage("r3", "the pairs on MT50, 50 demonstrations per task", grids=lambda ctx: [r3_grid(ctx.sizes)]),
+    *(
+        Stage(
+            label.lower(),
+            f"the chunked-heads regime {label}",
+            grids=lambda ctx, label=label: [chunked_grid(ctx.sizes, label)],
+            records=Digest(CHUNKED_STARTED_FILE),
+        )
+        for label in ("R4", "R5")
+    ),
+)
 
 
 def planned(ctx: Context) -> Planned:
     """The planned runs the tables read; a chunked-heads plan that changed after its runs started is refused."""
     heads = chunked_heads(ctx.sizes)
-    chunked = {}
-    for label, head in heads.items():
-        specs = chunked_stage(ctx.sizes, label).specs(ctx.planner)
-        check_plan_started(ctx.out, label, specs, record=False)
-        chunked[label] = (head, specs)
+    chunked = {label: (head, stage_arms(ctx, STAGES[label.lower()])) for label, head in heads.items()}
     paired = {label: specs for label, specs in plan(ctx).items() if label not in heads}
     return Planned(paired, chunked, ctx.out / SCREENING_FILE, screening(ctx.out), ctx.out)
 
@@ -432,9 +448,7 @@ STUDY = Study(
     name="regimes",
     about="The pre-registered regime study: runs and tables.",
     scales=SIZES,
-    stages=("r1", "r2-screen", "r2", "r3", "r4", "r5"),
-    plan=plan,
-    run=run,
+    stages=STAGES,
     table=table,
     results=lambda scale: "regimes" if scale == "cpu" else None,
     options=_options,

@@ -32,15 +32,15 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.studies import regimes
-from benchmarks.studies.cli import RESULTS, Context, Study, tables_dir
+from benchmarks.studies.cli import RESULTS, tables_dir
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_summary, holm_into, paired
-from benchmarks.studies.core import Arm, Scale, Spec, Stage, seed_major
+from benchmarks.studies.core import Arm, Grid, Scale, Spec, seed_major
 from benchmarks.studies.protocol import BASELINE
 from benchmarks.studies.records import provenance, read_json, reproduces
-from benchmarks.studies.sweep import execute
+from benchmarks.studies.stages import Context, Gate, Stage, Study, named
 from benchmarks.studies.writers import fit_markdown, fmt_p, write_outputs
 
-__all__ = ["SIZES", "STUDY", "Tuning", "select", "settings"]
+__all__ = ["SIZES", "STAGES", "STUDY", "Tuning", "select", "settings"]
 
 VARIANTS = ("tar_arm", "tar_dimnorm")  # in the order the plan lists them (a tie goes to the first)
 DEFAULTS = {"gamma": 1.0, "cap": "paper", "w_max": 3.0}  # tar-rl's defaults (the paper publishes no values)
@@ -123,19 +123,19 @@ def settings(tuning: Tuning) -> dict[str, tuple[str, ...]]:
     return out
 
 
-def tune_stage(tuning: Tuning) -> Stage:
+def tune_grid(tuning: Tuning) -> Grid:
     """Every setting on the tuning seeds, evaluated on the tuning evaluation seed."""
     arms = tuple(Arm(name, objective) for name, objective in settings(tuning).items())
     base = (*tuning.r3, f"eval.seed={tuning.tune_eval_seed}")
-    return Stage("tune", "every setting on the tuning seeds", base, arms, tuning.tune_seeds)
+    return Grid("tune", "every setting on the tuning seeds", base, arms, tuning.tune_seeds)
 
 
-def final_stage(tuning: Tuning, selected: dict) -> Stage:
+def final_grid(tuning: Tuning, selected: dict) -> Grid:
     """The selected cell, the selected variant and uniform on the final seeds, with R3's evaluation."""
     every = settings(tuning)
     arms = tuple(Arm(name, every[name]) for name in (selected["cell"], selected["variant"], BASELINE))
     base = (*tuning.r3, f"eval.seed={tuning.final_eval_seed}")
-    return Stage("final", "the selected settings on the final seeds", base, arms, tuning.final_seeds)
+    return Grid("final", "the selected settings on the final seeds", base, arms, tuning.final_seeds)
 
 
 # -- The selection rule ------------------------------------------------------------------------------
@@ -380,20 +380,11 @@ def final_table(
 # -- The study -------------------------------------------------------------------------------------------
 
 
-def plan(ctx: Context) -> dict[str, list[Spec]]:
-    """The tuning runs and, once a selection is recorded, the final runs."""
-    plans = {"tune": seed_major(tune_stage(ctx.sizes).specs(ctx.planner))}
-    selected = read_json(ctx.out / SELECTED_FILE)
-    if selected is not None:
-        plans["final"] = seed_major(final_stage(ctx.sizes, selected).specs(ctx.planner))
-    return plans
-
-
-def write_selection(ctx: Context) -> None:
+def write_selection(ctx: Context) -> list[Spec]:
     """The ``select`` stage: the rule on the finished tuning runs, written to ``selected.json``."""
     from tar_rl.io import write_json_atomic
 
-    specs = tune_stage(ctx.sizes).specs(ctx.planner)
+    specs = tune_grid(ctx.sizes).specs(ctx.planner)
     unfinished = [s.run_dir.name for s in seed_major(specs) if not s.finished]
     if unfinished:
         names = ", ".join(unfinished[:4])
@@ -404,31 +395,35 @@ def write_selection(ctx: Context) -> None:
     path = ctx.out / SELECTED_FILE
     selected = read_json(path)
     if selected is not None and (selected["cell"], selected["variant"]) != (choice["cell"], choice["variant"]):
-        started = [s for s in seed_major(final_stage(ctx.sizes, selected).specs(ctx.planner)) if s.run_dir.exists()]
+        started = [s for s in seed_major(final_grid(ctx.sizes, selected).specs(ctx.planner)) if s.run_dir.exists()]
         if started:
             raise SystemExit(f"tuning: final runs of {path}'s choice have started; not changed")
     write_json_atomic(choice, path)
     print(f"selected: cell {choice['cell']}, variant {choice['variant']} ({path})")
+    return []
 
 
-def run(ctx: Context, stage: str) -> list[Spec]:
-    """Train one stage (module docstring); returns the runs that failed."""
-    if stage == "select":
-        write_selection(ctx)
-        return []
-    if stage == "tune":
-        specs = tune_stage(ctx.sizes).specs(ctx.planner)
-    else:
-        selected = read_json(ctx.out / SELECTED_FILE)
-        if selected is None:
-            raise SystemExit(f"tuning: no {ctx.out / SELECTED_FILE} yet; run `select` first")
-        specs = final_stage(ctx.sizes, selected).specs(ctx.planner)
-    return execute(ctx.scale, seed_major(specs), ctx.jobs, ctx.args.dry_run, ctx.logs)
+STAGES = named(
+    Stage("tune", "every setting on the tuning seeds", grids=lambda ctx: [tune_grid(ctx.sizes)]),
+    Stage("select", "the selection rule on the finished tuning runs: selected.json", action=write_selection),
+    Stage(
+        "final",
+        "the selected cell and variant and uniform on the final seeds",
+        grids=lambda ctx, selected: [final_grid(ctx.sizes, selected)],
+        gates=(
+            Gate(
+                "the selection record",
+                read=lambda ctx: read_json(ctx.out / SELECTED_FILE),
+                missing=lambda ctx: f"tuning: no {ctx.out / SELECTED_FILE} yet; run `select` first",
+            ),
+        ),
+    ),
+)
 
 
 def final_outputs(ctx: Context, selected: dict) -> dict[str, tuple[str, pd.DataFrame]]:
     """``final.md``/``final.csv`` once a final run of the selection and uniform's finished (else nothing)."""
-    planned = final_stage(ctx.sizes, selected).specs(ctx.planner)
+    planned = final_grid(ctx.sizes, selected).specs(ctx.planner)
     _, final = overall_success(planned)
     if not final.get(BASELINE) or not (final.get(selected["cell"]) or final.get(selected["variant"])):
         return {}
@@ -442,7 +437,7 @@ def final_outputs(ctx: Context, selected: dict) -> dict[str, tuple[str, pd.DataF
 
 def table(ctx: Context) -> None:
     """``tuning.md``/``.csv`` and, once final runs finished, ``final.md``/``.csv`` (module docstring)."""
-    success, loaded = overall_success(tune_stage(ctx.sizes).specs(ctx.planner))
+    success, loaded = overall_success(tune_grid(ctx.sizes).specs(ctx.planner))
     if not any(success.values()):
         raise SystemExit("tuning: no finished tuning run yet")
     _check_commits({k: v for k, v in loaded.items() if v})
@@ -467,9 +462,7 @@ STUDY = Study(
     name="tuning",
     about="TAR's pre-registered tuning in R3: runs and tables.",
     scales=SIZES,
-    stages=("tune", "select", "final"),
-    plan=plan,
-    run=run,
+    stages=STAGES,
     table=table,
     results=lambda scale: "regimes/tuning" if scale == "cpu" else None,
     with_options=_with_options,

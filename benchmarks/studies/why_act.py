@@ -31,7 +31,7 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.studies import sweep
-from benchmarks.studies.cli import Context, Study, with_seeds
+from benchmarks.studies.cli import with_seeds
 from benchmarks.studies.compare import (
     FINAL_SHARE,
     Comparison,
@@ -40,10 +40,11 @@ from benchmarks.studies.compare import (
     finished_runs,
     stage_fits,
 )
-from benchmarks.studies.core import Arm, Planner, Scale, Spec, Stage, seed_major
-from benchmarks.studies.records import check_stage_plan, read_json
+from benchmarks.studies.core import Arm, Grid, Scale, Spec
+from benchmarks.studies.records import read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
+from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
 from benchmarks.studies.sweep import execute
 from benchmarks.studies.writers import comparison_lines, fit_markdown, fmt_num, group_lines, write_outputs
 
@@ -53,6 +54,7 @@ __all__ = [
     "CONTROLS",
     "PERTURB",
     "SIZES",
+    "STAGES",
     "STUDY",
     "Comparison",
     "WhySizes",
@@ -149,40 +151,27 @@ def select_rate(success: dict[float, float], reference: float) -> tuple[float, f
 # -- The stages ------------------------------------------------------------------------------------------
 
 
-def reuse_planner(ctx: Context) -> Planner:
-    """The planner of R4's runs: the regime study's folder above this study's."""
-    p = ctx.planner
-    return Planner(p.scale, ctx.out.parent, p.data_root, p.extra)
-
-
-def with_base_arms(ctx: Context, arms: tuple[str, ...]) -> dict[str, list[Spec]]:
-    """``arms`` with the seed's ``uniform`` and ``tar`` runs, per arm, seeds in order: R4's runs for the
-    :attr:`WhySizes.reused_seeds`, this study's folder for the others."""
+def with_base_arms(ctx: Context, name: str, arms: tuple[str, ...]) -> Grid:
+    """``arms`` with the seed's ``uniform`` and ``tar`` runs, seeds in order: R4's runs (the regime study's folder
+    above this study's) for the :attr:`WhySizes.reused_seeds`, this study's folder for the others."""
     sizes = ctx.sizes
-    stage = Stage("", "", sizes.base, tuple(Arm.objective(a) for a in (*BASE_ARMS, *arms)), sizes.scale.seeds)
-    r4 = reuse_planner(ctx)
-    specs: dict[str, list[Spec]] = {}
-    for arm in stage.arms:
-        specs[arm.name] = [
-            (r4 if arm.name in BASE_ARMS and s in sizes.reused_seeds else ctx.planner).spec(*stage.overrides(arm, s))
-            for s in stage.seeds
-        ]
-    return specs
+    every = tuple(Arm.objective(a) for a in (*BASE_ARMS, *arms))
+    reused = frozenset((a, s) for a in BASE_ARMS for s in sizes.reused_seeds)
+    about = f"{', '.join(arms)} with the seed's uniform and tar"
+    return Grid(name, about, sizes.base, every, sizes.scale.seeds, reused=reused, reused_from=ctx.out.parent)
 
 
-def tune_specs(ctx: Context, rates) -> dict[str, list[Spec]]:
+def tune_grid(sizes: WhySizes, rates) -> Grid:
     """The tuning runs (uniform at each rate, the tuning seeds, the tuning evaluation seed), per rate."""
-    sizes = ctx.sizes
     base = (*sizes.base, f"eval.seed={sizes.tune_eval_seed}", "objective=uniform")
     arms = tuple(Arm(f"lr={r:g}", (f"optim.lr={r:g}",)) for r in sorted(rates))
-    return Stage("tune", "uniform over learning rates", base, arms, sizes.tune_seeds, seed_last=True).specs(ctx.planner)
+    return Grid("tune", "uniform over learning rates", base, arms, sizes.tune_seeds, seed_last=True)
 
 
-def tuned_specs(ctx: Context, rate: float) -> dict[str, list[Spec]]:
+def tuned_grid(sizes: WhySizes, rate: float) -> Grid:
     """The tuned pair: ``uniform`` and ``tar`` at ``rate``, every seed."""
-    base = (*ctx.sizes.base, f"optim.lr={rate:g}")
-    arms = tuple(Arm.objective(a) for a in BASE_ARMS)
-    return Stage("tuned", "the tuned pair", base, arms, ctx.sizes.scale.seeds).specs(ctx.planner)
+    base = (*sizes.base, f"optim.lr={rate:g}")
+    return Grid("tuned", "the tuned pair", base, tuple(Arm.objective(a) for a in BASE_ARMS), sizes.scale.seeds)
 
 
 def tuning(ctx: Context) -> dict | None:
@@ -203,36 +192,14 @@ def grid_success(specs: dict[str, list[Spec]]) -> dict[float, float] | None:
     return out
 
 
-def check_plan(ctx: Context, key: str, specs: dict[str, list[Spec]], record: bool) -> None:
-    """Refuse a stage's plan that differs from the one its runs started with; with ``record``, record it."""
-    check_stage_plan(ctx.out / STARTED_FILE, "why_act", key, specs, record)
-
-
-def stage_specs(ctx: Context, stage: str) -> dict[str, list[Spec]] | None:
-    """A stage's runs per arm, or None for a gated stage whose record is missing (``tuned`` before
-    ``tuning.json``, or when the rule trains no tuned pair)."""
-    if stage == "placement":
-        return with_base_arms(ctx, CONTROLS)
-    if stage == "perturb":
-        return with_base_arms(ctx, PERTURB)
-    if stage == "tune":
-        record = tuning(ctx)
-        return tune_specs(ctx, record["rates"] if record else ctx.sizes.tune_rates)
-    record = tuning(ctx)
-    if record is None or not record["train_pair"]:
-        return None
-    return tuned_specs(ctx, record["best"])
-
-
-def run_tune(ctx: Context, dry: bool, tree: Path | None) -> list[Spec]:
+def run_tune(ctx: Context) -> list[Spec]:
     """Train the tuning grid, extend it while its best rate is at an edge, and record the outcome."""
     from tar_rl.io import write_json_atomic
 
-    sizes = ctx.sizes
+    sizes, dry, tree = ctx.sizes, ctx.args.dry_run, ctx.tree
     rates = list(sizes.tune_rates)
-    check_plan(ctx, "tune", tune_specs(ctx, rates), record=not dry)
     while True:
-        specs = tune_specs(ctx, rates)
+        specs = tune_grid(sizes, rates).specs(ctx.planner)
         rate_by_rate = [s for group in specs.values() for s in group]
         failed = execute(ctx.scale, rate_by_rate, ctx.jobs, dry, ctx.logs, tree=tree)
         success = grid_success(specs)
@@ -283,10 +250,9 @@ def stage_runs(ctx: Context, stage: str, complete: bool) -> tuple[dict[str, dict
     Raises:
         SystemExit: the plan changed after its runs started; with ``complete``, a run of the plan is missing.
     """
-    specs = stage_specs(ctx, stage)
+    specs = stage_arms(ctx, STAGES[stage])
     if specs is None:
         return {}, []
-    check_plan(ctx, stage, specs, record=False)
     return finished_runs(specs, "why_act", stage, complete)
 
 
@@ -326,7 +292,7 @@ def tuning_rows(ctx: Context) -> list[dict]:
     record = tuning(ctx)
     rates = record["rates"] if record else ctx.sizes.tune_rates
     rows = []
-    for group in tune_specs(ctx, rates).values():
+    for group in tune_grid(ctx.sizes, rates).specs(ctx.planner).values():
         for spec in group:
             if spec.finished:
                 run = load_run(spec.run_dir)
@@ -400,29 +366,53 @@ def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -
 # -- The study -------------------------------------------------------------------------------------------
 
 
-def plan(ctx: Context) -> dict[str, list[Spec]]:
-    """Every stage's planned runs that can be planned now, by stage."""
-    out = {}
-    for stage in STUDY.stages:
-        specs = stage_specs(ctx, stage)
-        if specs is not None:
-            out[stage] = seed_major(specs)
-    return out
+def _rates(ctx: Context) -> tuple[float, ...]:
+    """The tuning grid's rates: the recorded ones once the grid is complete, else the first ones."""
+    record = tuning(ctx)
+    return record["rates"] if record else ctx.sizes.tune_rates
 
 
-def run(ctx: Context, stage: str) -> list[Spec]:
-    """Train one stage (module docstring); returns the runs that failed."""
-    dry, tree = ctx.args.dry_run, check_tree(ctx.args.tree)
-    if stage == "tune":
-        return run_tune(ctx, dry, tree)
-    specs = stage_specs(ctx, stage)
-    if specs is None:
-        raise SystemExit(
-            f"why_act: the tuned pair is planned once the tuning grid is complete and its rule trains it "
-            f"({ctx.out / TUNING_FILE}: {tuning(ctx)}); run `tune` first"
-        )
-    check_plan(ctx, stage, specs, record=not dry)
-    return execute(ctx.scale, seed_major(specs), ctx.jobs, dry, ctx.logs, tree=tree)
+def _trains_pair(ctx: Context) -> dict | None:
+    record = tuning(ctx)
+    return record if record is not None and record["train_pair"] else None
+
+
+def _no_tuned_pair(ctx: Context) -> str:
+    return (
+        f"why_act: the tuned pair is planned once the tuning grid is complete and its rule trains it "
+        f"({ctx.out / TUNING_FILE}: {tuning(ctx)}); run `tune` first"
+    )
+
+
+STARTED = Digest(STARTED_FILE)
+STAGES = named(
+    Stage(
+        "placement",
+        "R6a: the controls at TAR's defaults with the seed's uniform and tar",
+        grids=lambda ctx: [with_base_arms(ctx, "placement", CONTROLS)],
+        records=STARTED,
+    ),
+    Stage(
+        "tune",
+        "R6c: uniform over learning rates, extended while the best is at an edge; writes tuning.json",
+        grids=lambda ctx: [tune_grid(ctx.sizes, _rates(ctx))],
+        records=Digest(STARTED_FILE, of=lambda ctx: tune_grid(ctx.sizes, ctx.sizes.tune_rates)),
+        action=run_tune,
+    ),
+    Stage(
+        "tuned",
+        "R6c: uniform and tar at the tuned rate",
+        grids=lambda ctx, record: [tuned_grid(ctx.sizes, record["best"])],
+        gates=(Gate("a tuning record whose rule trains the tuned pair", _trains_pair, _no_tuned_pair),),
+        records=STARTED,
+    ),
+    Stage(
+        "perturb",
+        "R6b: the perturbation arms with the seed's uniform and tar",
+        grids=lambda ctx: [with_base_arms(ctx, "perturb", PERTURB)],
+        records=STARTED,
+    ),
+)
 
 
 def table(ctx: Context) -> None:
@@ -441,16 +431,11 @@ def _options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def check_tree(tree: Path | None) -> Path | None:
-    """The checkout ``--tree`` names, resolved; refused unless it holds tar-rl and its own ``.venv``."""
-    return sweep.check_tree(tree, "why_act")
-
-
 def keep_weights(ctx: Context) -> list[str]:
     """Seed 0's runs of every arm (the weights of each arm on one seed)."""
     names = []
     for stage in ("placement", "perturb"):
-        names += [group[0].run_dir.name for group in stage_specs(ctx, stage).values() if group]
+        names += [group[0].run_dir.name for group in stage_arms(ctx, STAGES[stage], check=False).values() if group]
     return names
 
 
@@ -458,9 +443,7 @@ STUDY = Study(
     name="why_act",
     about="Why does TAR help act? R6: the paper's controls, a tuned baseline and the perturbation test.",
     scales=SIZES,
-    stages=("placement", "tune", "tuned", "perturb"),
-    plan=plan,
-    run=run,
+    stages=STAGES,
     table=table,
     results=lambda scale: "regimes/r6" if scale == "cpu" else None,
     options=_options,

@@ -20,7 +20,7 @@ import yaml
 from run_helpers import ROLLOUTS, write_run
 
 from benchmarks.studies import cli, paper
-from benchmarks.studies.core import Planner
+from benchmarks.studies.core import Planner, seed_major
 from benchmarks.studies.writers import controls_markdown, table_one_markdown
 from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
 from tar_rl.report.figures import (
@@ -402,7 +402,11 @@ def test_scales_pair_objectives_and_paper_scale_is_the_papers_protocol(bench, tm
     assert len(cpu.scale.seeds) >= 5 and cpu.families == ("mlp",)
     assert cpu.sens_eval_seed != cpu.scale.value("eval.seed") and cpu.scale.value("eval.seed") == "1000"
     one_seed = dataclasses.replace(cpu, scale=dataclasses.replace(cpu.scale, seeds=(0,)))
-    specs = bench.stage_specs(one_seed, Planner(one_seed.scale, tmp_path, str(tmp_path)), "protocol")
+    specs = [
+        s
+        for grid in bench.protocol_grids(one_seed)
+        for s in seed_major(grid.specs(Planner(one_seed.scale, tmp_path, str(tmp_path))))
+    ]
     assert len(specs) == 2
     a, b = specs[0].config, specs[1].config
     # uniform has no parameters and tar has TAR's four, at their defaults: otherwise the pair is the same job

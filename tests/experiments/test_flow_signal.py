@@ -123,10 +123,10 @@ def cpu_plans(tmp_path_factory):
     ctx = cli.context(flow_signal.STUDY, ["plan", "--seeds", "0,1", "--out", str(out)])
     r5 = cli.context(regimes.STUDY, ["plan", "--seeds", "0"])
     return {
-        "pilot": flow_signal.pilot_specs(ctx),
-        "b": flow_signal.r7_specs(ctx, "b"),
-        "d": flow_signal.r7_specs(ctx, "d"),
-        "r5": regimes.chunked_stage(r5.sizes, "R5").specs(r5.planner),
+        "pilot": flow_signal.pilot_grid(ctx.sizes).specs(ctx.planner),
+        "b": flow_signal.r7_grid(ctx.sizes, "b").specs(ctx.planner),
+        "d": flow_signal.r7_grid(ctx.sizes, "d").specs(ctx.planner),
+        "r5": regimes.chunked_grid(r5.sizes, "R5").specs(r5.planner),
     }
 
 

@@ -13,19 +13,22 @@ import pytest
 from paths import REPO
 
 from benchmarks.studies import baselines, cli, paper, regimes, tuning
-from benchmarks.studies.core import Arm, Planner, Scale, Stage, plan_digest, seed_major
+from benchmarks.studies.core import Arm, Grid, Planner, Scale, plan_digest, seed_major
 from benchmarks.studies.records import check_started
+from benchmarks.studies.stages import Digest, plan, stage_grids, stage_specs
 
 PLANNED = json.loads((Path(__file__).parent / "planned_runs.json").read_text())
 COMMITTED = REPO / "benchmarks" / "results" / "regimes"
 OUT = Path("OUT")  # the folder the recorded names were planned in (R1's runs: the committed regime study's)
 
 
-def test_a_stage_is_arms_by_seeds_over_its_base_in_the_order_given():
-    stage = Stage("s", "a stage", ("a=1", "b=2"), (Arm.objective("uniform"), Arm("x", ("c=3", "d=4"))), (0, 7))
-    assert stage.overrides(stage.arms[1], 7) == ("a=1", "b=2", "seed=7", "c=3", "d=4")
-    last = Stage("s", "a stage", ("a=1",), (Arm.objective("tar"),), (0,), seed_last=True)
+def test_a_grid_is_arms_by_seeds_over_its_base_in_the_order_given():
+    grid = Grid("s", "a grid", ("a=1", "b=2"), (Arm.objective("uniform"), Arm("x", ("c=3", "d=4"))), (0, 7))
+    assert grid.overrides(grid.arms[1], 7) == ("a=1", "b=2", "seed=7", "c=3", "d=4")
+    last = Grid("s", "a grid", ("a=1",), (Arm.objective("tar"),), (0,), seed_last=True)
     assert last.overrides(last.arms[0], 0) == ("a=1", "objective=tar", "seed=0")
+    one = Grid.single("one", ("a=1", "seed=3"))
+    assert [one.overrides(arm, s) for arm in one.arms for s in one.seeds] == [("a=1", "seed=3")]
 
 
 def test_seed_major_takes_every_arm_of_a_seed_before_the_next_seed():
@@ -64,9 +67,9 @@ def test_a_started_record_is_written_once_and_a_change_refused(tmp_path):
 def _chunked_digest(label: str) -> str:
     sizes = regimes.SIZES["cpu"]
     planner = Planner(sizes.scale, COMMITTED, "datasets")
-    stage = regimes.chunked_stage(sizes, label)
-    overrides = {a.name: [SimpleNamespace(overrides=planner.overrides(*stage.overrides(a, s))) for s in stage.seeds]
-                 for a in stage.arms}  # fmt: skip
+    grid = regimes.chunked_grid(sizes, label)
+    overrides = {a.name: [SimpleNamespace(overrides=planner.overrides(*grid.overrides(a, s))) for s in grid.seeds]
+                 for a in grid.arms}  # fmt: skip
     return plan_digest(overrides)
 
 
@@ -107,12 +110,12 @@ def _regimes(scale: str) -> dict:
     source = regimes.source_spec(sizes, planner)
     screened = json.loads((COMMITTED / "screening.json").read_text())["tasks"]
     got = {"source": [source.run_dir.name], "screen": [planner.spec(*sizes.screen).run_dir.name]}
-    r1 = [regimes.r1_stage(sizes, source, n) for n in sizes.r1_budgets] if scale == "cpu" else []
-    got["r1"] = [name for stage in r1 for name in _names(regimes.pairs(stage, planner))]
-    got["r2"] = _names(regimes.pairs(regimes.r2_stage(sizes, screened), planner))
-    got["r3"] = _names(regimes.pairs(regimes.r3_stage(sizes), planner))
+    r1 = [regimes.r1_grid(sizes, source, n) for n in sizes.r1_budgets] if scale == "cpu" else []
+    got["r1"] = [name for grid in r1 for name in _names(seed_major(grid.specs(planner)))]
+    got["r2"] = _names(seed_major(regimes.r2_grid(sizes, screened).specs(planner)))
+    got["r3"] = _names(seed_major(regimes.r3_grid(sizes).specs(planner)))
     for label in ("R4", "R5"):
-        specs = regimes.chunked_stage(sizes, label).specs(planner)
+        specs = regimes.chunked_grid(sizes, label).specs(planner)
         got[label.lower()], got[f"{label.lower()}_digest"] = _names(seed_major(specs)), plan_digest(specs)
     return got
 
@@ -123,22 +126,19 @@ def _tuning(scale: str) -> dict:
     if scale == "ci":
         selected = {"cell": "tar-g0.5-paper-w3", "variant": "tar_arm"}
     return {
-        "tune": _names(seed_major(tuning.tune_stage(sizes).specs(planner))),
-        "final": _names(seed_major(tuning.final_stage(sizes, selected).specs(planner))),
+        "tune": _names(seed_major(tuning.tune_grid(sizes).specs(planner))),
+        "final": _names(seed_major(tuning.final_grid(sizes, selected).specs(planner))),
     }
 
 
 def _baselines(scale: str) -> dict:
-    sizes = regimes.SIZES[scale]
-    planner = Planner(sizes.scale, OUT, "datasets")
-    uniform = baselines.uniform_stage(sizes).specs(planner)["uniform"]
-    return {"run": _names([uniform[0], *seed_major(baselines.stage(sizes).specs(planner))])}
+    ctx = cli.context(baselines.STUDY, ["plan", "--scale", scale, "--out", str(OUT), "--regimes", str(COMMITTED)])
+    return {"run": _names(stage_specs(ctx, baselines.STAGES["baselines"], trained=True))}
 
 
 def _paper(scale: str) -> dict:
-    sizes = paper.SIZES[scale]
-    planner = Planner(sizes.scale, OUT, "datasets")
-    return {stage: _names(paper.stage_specs(sizes, planner, stage)) for stage in paper.STAGES}
+    ctx = cli.context(paper.STUDY, ["plan", "--scale", scale, "--out", str(OUT)])
+    return {name: _names(stage_specs(ctx, stage)) for name, stage in paper.STAGES.items() if stage.grids}
 
 
 PLANS = {"regimes": _regimes, "tuning": _tuning, "baselines": _baselines, "paper": _paper}
@@ -171,7 +171,7 @@ def test_a_stage_whose_runs_failed_exits_non_zero(jobs, tmp_path, data_root):
     argv = ["regimes", "run", "r3", "--scale", "ci", "--out", str(tmp_path / "out"), "--data-root", str(data_root)]
     argv += ["--seeds", "0", "--jobs", jobs]
     ctx = cli.context(regimes.STUDY, argv[1:])
-    specs = regimes.pairs(regimes.r3_stage(ctx.sizes), ctx.planner)
+    specs = stage_specs(ctx, regimes.STAGES["r3"])
     with contextlib.ExitStack() as held:
         for spec in specs:
             spec.run_dir.mkdir(parents=True)
@@ -182,3 +182,49 @@ def test_a_stage_whose_runs_failed_exits_non_zero(jobs, tmp_path, data_root):
     assert done.returncode == 1, done.stdout + done.stderr
     names = ", ".join(spec.run_dir.name for spec in specs)
     assert f"{len(specs)} run(s) failed: " in done.stdout and all(s.run_dir.name in done.stdout for s in specs), names
+
+
+def _digests(ctx, study) -> dict[str, str]:
+    """Each recorded stage's plan digest as its declaration plans it now, under the name its record files it by."""
+    out = {}
+    for stage in study.stages.values():
+        if isinstance(stage.records, Digest):
+            grids = [stage.records.of(ctx)] if stage.records.of else stage_grids(ctx, stage) or []
+            out.update({grid.name: plan_digest(grid.specs(ctx.planner)) for grid in grids})
+    return out
+
+
+@pytest.mark.slow  # composes every committed study's plan at the cpu scale: about a minute
+@pytest.mark.parametrize("study", ["regimes", "why_act", "tuning", "baselines"])
+def test_the_committed_studies_recompute_their_records_and_run_names(study):
+    """Every committed study at the cpu scale, planned by its declared stages from its committed records: each plan
+    digest its ``started`` records hold recomputes, and every committed run folder is a run the stages plan (by
+    name: a renamed run would not be collected into it, nor found by the tables)."""
+    mod = cli.load(study)
+    ctx = cli.context(mod, ["plan"])
+    planned = {s.run_dir.name for specs in plan(ctx).values() for s in specs}
+    planned |= {s.run_dir.name for stage in mod.stages.values() for s in stage_specs(ctx, stage, trained=True) or []}
+    if study == "regimes":  # R1's source and R2's screening run, which the stages train before their gates
+        planned |= {s.run_dir.name for s in stage_specs(ctx, regimes.STAGES["r1"].first[0])}
+        planned |= {s.run_dir.name for s in stage_specs(ctx, regimes.STAGES["r2-screen"])}
+        started = json.loads((ctx.out / "r2_started.json").read_text())
+        screened = json.loads((ctx.out / "screening.json").read_text())
+        assert started == {"tasks": screened["tasks"], "digest": screened["digest"]}
+    records = {}
+    for path in ctx.out.glob("*started.json"):
+        if path.name != "r2_started.json":
+            records.update(json.loads(path.read_text()))
+    assert bool(records) == (study in ("regimes", "why_act"))
+    digests = _digests(ctx, mod)
+    assert {key: digests[key] for key in records} == records
+    committed = {p.name for p in (ctx.out / "runs").iterdir() if p.is_dir()}
+    assert committed and committed <= planned, sorted(committed - planned)
+
+
+def test_the_recorded_digests_are_the_ones_committed():
+    """The digests R4's, R5's and R6's placement runs started with (the runs R6 trains now are collected by them)."""
+    assert json.loads((COMMITTED / "chunked_started.json").read_text()) == {
+        "R4": "519e5635200b4c2a",
+        "R5": "aaf63c1da10507c5",
+    }
+    assert json.loads((COMMITTED / "r6" / "started.json").read_text())["placement"] == "746c15c91d5ef103"

@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from benchmarks.studies import cli, compare, why_act
+from benchmarks.studies.stages import stage_arms
 from benchmarks.studies.why_act import ladder_neighbour, select_rate
 
 
@@ -232,7 +233,7 @@ def test_the_tuned_pair_waits_for_the_tuning_record(tmp_path):
 def cpu_placement():
     """R6's cpu plan of the placement stage for seeds 0 (R4's CPU seed) and 4 (R4's H200 seed), composed once."""
     ctx = cli.context(why_act.STUDY, ["plan", "--seeds", "0,4"])
-    return ctx, why_act.stage_specs(ctx, "placement")
+    return ctx, stage_arms(ctx, why_act.STAGES["placement"], check=False)
 
 
 def test_the_cpu_plan_reuses_r4s_cpu_seeds_and_trains_r4s_gpu_seeds_again(cpu_placement):
