@@ -1,0 +1,53 @@
+"""Several ``lerobot-train`` command lines in one process: ``test_train.py``'s runs share one start of LeRobot.
+
+``python lerobot_train_runs.py RUNS`` reads ``RUNS`` (JSON: a list of ``{"argv": [...], "out": FOLDER}``) and runs
+each command line through ``lerobot-train``'s own entry point, the function its console script calls (looked up in
+the installed entry points, so the path is the one the user's command takes: LeRobot's plugin discovery, its config
+parser, ``train``). Each run's stdout and stderr (the file descriptors, so LeRobot's logging and any library's
+prints) go to ``FOLDER/stdout`` and ``FOLDER/stderr``, and its exit status to ``FOLDER/returncode``: the console
+script's, 1 for an exception (its traceback in ``stderr``, as the console script prints it), else the ``SystemExit``
+code or 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import traceback
+from importlib.metadata import entry_points
+from pathlib import Path
+
+
+def run(argv: list[str], out: Path) -> int:
+    (main,) = (point.load() for point in entry_points(group="console_scripts", name="lerobot-train"))
+    out.mkdir(parents=True, exist_ok=True)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with open(out / "stdout", "wb") as stdout, open(out / "stderr", "wb") as stderr:
+        os.dup2(stdout.fileno(), 1)
+        os.dup2(stderr.fileno(), 2)
+        sys.argv = ["lerobot-train", *argv]
+        try:
+            main()
+            status = 0
+        except SystemExit as exit_:
+            status = exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 1)
+            if not isinstance(exit_.code, int | None):
+                print(exit_.code, file=sys.stderr)  # as Python prints sys.exit("message")
+        except BaseException:
+            traceback.print_exc()
+            status = 1
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+    (out / "returncode").write_text(str(status))
+    return status
+
+
+if __name__ == "__main__":
+    for case in json.loads(Path(sys.argv[1]).read_text()):
+        run(case["argv"], Path(case["out"]))
