@@ -1,12 +1,13 @@
-"""Several ``lerobot-train`` command lines in one process: ``test_train.py``'s runs share one start of LeRobot.
+"""``lerobot-train`` command lines, one after another in one process: the plugin's tests start LeRobot once for all
+of theirs (the ``lerobot_train`` fixture of ``conftest.py``).
 
-``python lerobot_train_runs.py RUNS`` reads ``RUNS`` (JSON: a list of ``{"argv": [...], "out": FOLDER}``) and runs
-each command line through ``lerobot-train``'s own entry point, the function its console script calls (looked up in
-the installed entry points, so the path is the one the user's command takes: LeRobot's plugin discovery, its config
-parser, ``train``). Each run's stdout and stderr (the file descriptors, so LeRobot's logging and any library's
-prints) go to ``FOLDER/stdout`` and ``FOLDER/stderr``, and its exit status to ``FOLDER/returncode``: the console
-script's, 1 for an exception (its traceback in ``stderr``, as the console script prints it), else the ``SystemExit``
-code or 0.
+``python lerobot_train_runs.py`` reads one request a line on stdin (JSON: ``{"argv": [...], "out": FOLDER, "cwd":
+FOLDER}``) and runs the command line ``lerobot-train ARGV`` in ``cwd`` through ``lerobot-train``'s own entry point,
+the function its console script calls (looked up in the installed entry points, so the path is the one the user's
+command takes: LeRobot's plugin discovery, its config parser, ``train``). The run's stdout and stderr (the file
+descriptors, so LeRobot's logging and any library's prints) go to ``FOLDER/stdout`` and ``FOLDER/stderr``; its exit
+status, the console script's (1 for an exception, its traceback in ``stderr`` as the console script prints it; else
+the ``SystemExit`` code or 0), is the answer: a line ``STATUS <n>`` on stdout.
 """
 
 from __future__ import annotations
@@ -19,15 +20,17 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 
-def run(argv: list[str], out: Path) -> int:
+def run(argv: list[str], out: Path, cwd: str) -> int:
     (main,) = (point.load() for point in entry_points(group="console_scripts", name="lerobot-train"))
     out.mkdir(parents=True, exist_ok=True)
     sys.stdout.flush()
     sys.stderr.flush()
     saved = os.dup(1), os.dup(2)
+    before = os.getcwd()
     with open(out / "stdout", "wb") as stdout, open(out / "stderr", "wb") as stderr:
         os.dup2(stdout.fileno(), 1)
         os.dup2(stderr.fileno(), 2)
+        os.chdir(cwd)
         sys.argv = ["lerobot-train", *argv]
         try:
             main()
@@ -42,12 +45,16 @@ def run(argv: list[str], out: Path) -> int:
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
+            os.chdir(before)
             os.dup2(saved[0], 1)
             os.dup2(saved[1], 2)
-    (out / "returncode").write_text(str(status))
+            os.close(saved[0])
+            os.close(saved[1])
     return status
 
 
 if __name__ == "__main__":
-    for case in json.loads(Path(sys.argv[1]).read_text()):
-        run(case["argv"], Path(case["out"]))
+    for request in sys.stdin:
+        case = json.loads(request)
+        status = run(case["argv"], Path(case["out"]), case["cwd"])
+        print(f"STATUS {status}", flush=True)

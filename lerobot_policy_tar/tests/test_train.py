@@ -1,13 +1,10 @@
 """The real client: ``lerobot-train --policy.type=<base>_tar`` runs offline for a few steps on a LeRobotDataset written
 here, saves a checkpoint, and the checkpoint loads back with ``from_pretrained`` and acts; bad settings stop it
 before training with a message naming them. The command lines run through ``lerobot-train``'s entry point, all in one
-process (the ``runs`` fixture)."""
+process (the ``lerobot_train`` fixture of ``conftest.py``)."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -45,13 +42,9 @@ def lerobot_train_args(dataset: Path, out: Path, policy_type: str, *extra: str) 
 
 
 @pytest.fixture(scope="module")
-def runs(
-    state_dataset, image_dataset, smolvlm, tmp_path_factory
-) -> dict[str, tuple[subprocess.CompletedProcess, Path]]:
-    """The module's ``lerobot-train`` command lines, by name, run once through ``lerobot-train``'s entry point in one
-    process of this environment (``lerobot_train_runs.py``): LeRobot starts once for the five lines instead of once
-    each, and each line still takes the console script's path (plugin discovery, LeRobot's config parser, ``train``).
-    Per line, its exit status and output as a ``CompletedProcess``, and its ``--output_dir``."""
+def runs(state_dataset, image_dataset, smolvlm, lerobot_train, tmp_path_factory) -> dict:
+    """The module's ``lerobot-train`` command lines, by name, each run once by the ``lerobot_train`` fixture
+    (``lerobot-train``'s entry point in one process): its exit status and output, and its ``--output_dir``."""
     lines = {
         "diffusion_tar-image": (
             image_dataset, "diffusion_tar", *TINY["diffusion_tar"], "--policy.tar.signal=time_normalized"
@@ -61,25 +54,11 @@ def runs(
         "slice_len": (state_dataset, "act_tar", *TINY["act_tar"], "--policy.tar.slice_len=99"),
         "pi0_fast": (state_dataset, "pi0_fast_tar"),
     }  # fmt: skip
-    folder = tmp_path_factory.mktemp("lerobot_train")
-    cases = {
-        name: {"argv": lerobot_train_args(data, folder / name / "out", kind, *extra), "out": str(folder / name / "log")}
+    folder = tmp_path_factory.mktemp("train")
+    return {
+        name: (lerobot_train(lerobot_train_args(data, folder / name, kind, *extra)), folder / name)
         for name, (data, kind, *extra) in lines.items()
     }
-    (folder / "runs.json").write_text(json.dumps(list(cases.values())))
-    script = Path(__file__).with_name("lerobot_train_runs.py")
-    command = [sys.executable, str(script), str(folder / "runs.json")]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=1800)
-    assert done.returncode == 0, done.stderr[-4000:]
-    result = {}
-    for name, case in cases.items():
-        log = Path(case["out"])
-        returncode = int((log / "returncode").read_text())
-        ran = subprocess.CompletedProcess(
-            case["argv"], returncode, (log / "stdout").read_text(), (log / "stderr").read_text()
-        )
-        result[name] = ran, folder / name / "out"
-    return result
 
 
 def load_and_act(checkpoint: Path, dataset: Path, policy_class) -> torch.Tensor:
