@@ -121,8 +121,8 @@ class LeRobotTrain:
     once each, and each run takes the path of the user's ``lerobot-train`` command). Calling it runs one command
     line and returns its exit status and output as ``subprocess.run`` would (``timeout`` seconds at most)."""
 
-    def __init__(self, folder: Path):
-        self.folder, self.runs = folder, 0
+    def __init__(self):
+        self.folder, self.runs = None, 0  # folder: where the runs' output goes, set before the first run
         self.errors = tempfile.TemporaryFile()
         env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
         script = Path(__file__).with_name("lerobot_train_runs.py")
@@ -156,8 +156,25 @@ class LeRobotTrain:
         self.errors.close()
 
 
+#: The session's ``lerobot-train`` process, started as soon as the tests are collected when one of them runs
+#: ``lerobot-train``: LeRobot's import there overlaps the tests that come before.
+RUNNER: dict[str, LeRobotTrain] = {}
+
+
+def pytest_collection_finish(session):
+    if any("lerobot_train" in item.fixturenames for item in session.items):
+        RUNNER["process"] = LeRobotTrain()
+
+
+def pytest_sessionfinish(session):
+    if "process" in RUNNER:
+        RUNNER.pop("process").close()
+
+
 @pytest.fixture(scope="session")
-def lerobot_train(tmp_path_factory):
-    runner = LeRobotTrain(tmp_path_factory.mktemp("lerobot_train_runs"))
-    yield runner
-    runner.close()
+def lerobot_train(tmp_path_factory) -> LeRobotTrain:
+    if "process" not in RUNNER:
+        RUNNER["process"] = LeRobotTrain()
+    runner = RUNNER["process"]
+    runner.folder = tmp_path_factory.mktemp("lerobot_train_runs")
+    return runner

@@ -7,7 +7,8 @@ the function its console script calls (looked up in the installed entry points, 
 command takes: LeRobot's plugin discovery, its config parser, ``train``). The run's stdout and stderr (the file
 descriptors, so LeRobot's logging and any library's prints) go to ``FOLDER/stdout`` and ``FOLDER/stderr``; its exit
 status, the console script's (1 for an exception, its traceback in ``stderr`` as the console script prints it; else
-the ``SystemExit`` code or 0), is the answer: a line ``STATUS <n>`` on stdout.
+the ``SystemExit`` code or 0), is the answer: a line ``STATUS <n>`` on stdout. The process loads the entry point
+(LeRobot's import) as it starts, before the first request; anything printed outside a run goes to its stderr.
 """
 
 from __future__ import annotations
@@ -20,8 +21,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 
-def run(argv: list[str], out: Path, cwd: str) -> int:
-    (main,) = (point.load() for point in entry_points(group="console_scripts", name="lerobot-train"))
+def run(main, argv: list[str], out: Path, cwd: str) -> int:
     out.mkdir(parents=True, exist_ok=True)
     sys.stdout.flush()
     sys.stderr.flush()
@@ -54,7 +54,10 @@ def run(argv: list[str], out: Path, cwd: str) -> int:
 
 
 if __name__ == "__main__":
+    answers = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)  # stdout outside a run: stderr, so the answers are alone on the pipe
+    (main,) = (point.load() for point in entry_points(group="console_scripts", name="lerobot-train"))
     for request in sys.stdin:
         case = json.loads(request)
-        status = run(case["argv"], Path(case["out"]), case["cwd"])
-        print(f"STATUS {status}", flush=True)
+        status = run(main, case["argv"], Path(case["out"]), case["cwd"])
+        print(f"STATUS {status}", file=answers, flush=True)
