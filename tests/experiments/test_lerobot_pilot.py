@@ -151,6 +151,15 @@ def plugin_side():
 
 @needs_plugin
 @pytest.mark.slow
+def test_a_server_that_cannot_load_the_checkpoint_is_reported_in_one_line(tmp_path, plugin_side):
+    # The first test to use plugin_side: its process imports LeRobot while this server does.
+    model = lerobot_pilot.LeRobotChunks(LEROBOT_PYTHON, tmp_path)
+    with pytest.raises(RuntimeError, match=r"ended: lerobot-tar serve: .* is not a LeRobot policy checkpoint"):
+        model.start()
+
+
+@needs_plugin
+@pytest.mark.slow
 def test_a_lerobot_checkpoint_rolls_out_as_its_chunks_computed_in_its_own_environment(tmp_path, plugin_side):
     run = tmp_path / "outputs" / "checkpoints" / "000002"
     checkpoint = run / "pretrained_model"
@@ -198,14 +207,6 @@ def test_a_lerobot_checkpoint_rolls_out_as_its_chunks_computed_in_its_own_enviro
         torch.testing.assert_close(call["action"], expected, rtol=1e-4, atol=1e-5)
     actions = torch.stack([call["action"] for call in calls])
     assert actions.std(0).max() > 1e-3 and (actions.abs() < 1).any()  # actions that move with the observations
-
-
-@needs_plugin
-@pytest.mark.slow
-def test_a_server_that_cannot_load_the_checkpoint_is_reported_in_one_line(tmp_path):
-    model = lerobot_pilot.LeRobotChunks(LEROBOT_PYTHON, tmp_path)
-    with pytest.raises(RuntimeError, match=r"ended: lerobot-tar serve: .* is not a LeRobot policy checkpoint"):
-        model.start()
 
 
 def test_a_missing_environment_is_named():
