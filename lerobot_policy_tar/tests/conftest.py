@@ -151,6 +151,8 @@ class LeRobotTrain:
 
     def close(self) -> None:
         self.process.stdin.close()
+        if not self.runs:  # no test ran lerobot-train (deselected, --collect-only): the import need not finish
+            self.process.kill()
         self.process.wait(timeout=60)
         self.process.stdout.close()
         self.errors.close()
