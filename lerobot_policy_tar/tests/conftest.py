@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import os
+import select
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -108,3 +113,70 @@ def state_dataset(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def image_dataset(tmp_path_factory) -> Path:
     return write_dataset(tmp_path_factory.mktemp("data") / "image", image=True)
+
+
+class LeRobotTrain:
+    """``lerobot-train`` for the tests: ``lerobot_train_runs.py`` running in this environment, each command line
+    through ``lerobot-train``'s entry point in that one process (LeRobot starts once for all the tests' runs, not
+    once each, and each run takes the path of the user's ``lerobot-train`` command). Calling it runs one command
+    line and returns its exit status and output as ``subprocess.run`` would (``timeout`` seconds at most)."""
+
+    def __init__(self):
+        self.folder, self.runs = None, 0  # folder: where the runs' output goes, set before the first run
+        self.errors = tempfile.TemporaryFile()
+        env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
+        script = Path(__file__).with_name("lerobot_train_runs.py")
+        self.process = subprocess.Popen(
+            [sys.executable, str(script)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.errors, env=env
+        )
+
+    def __call__(self, argv: list[str], cwd: Path | None = None, timeout: float = 900) -> subprocess.CompletedProcess:
+        self.runs += 1
+        out = self.folder / f"run{self.runs}"
+        request = {"argv": [str(a) for a in argv], "out": str(out), "cwd": str(cwd or Path.cwd())}
+        self.process.stdin.write(json.dumps(request).encode() + b"\n")
+        self.process.stdin.flush()
+        answer = b""
+        while not answer.endswith(b"\n"):
+            ready, _, _ = select.select([self.process.stdout], [], [], timeout)
+            chunk = os.read(self.process.stdout.fileno(), 4096) if ready else b""
+            if not chunk:
+                self.errors.seek(0)
+                said = self.errors.read().decode(errors="replace")[-3000:]
+                raise AssertionError(f"lerobot-train gave no answer in {timeout} s or ended: {said}")
+            answer += chunk
+        status = int(answer.decode().removeprefix("STATUS ").strip())
+        stdout, stderr = ((out / name).read_text(errors="replace") for name in ("stdout", "stderr"))
+        return subprocess.CompletedProcess(["lerobot-train", *request["argv"]], status, stdout, stderr)
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        if not self.runs:  # no test ran lerobot-train (deselected, --collect-only): the import need not finish
+            self.process.kill()
+        self.process.wait(timeout=60)
+        self.process.stdout.close()
+        self.errors.close()
+
+
+#: The session's ``lerobot-train`` process, started as soon as the tests are collected when one of them runs
+#: ``lerobot-train``: LeRobot's import there overlaps the tests that come before.
+RUNNER: dict[str, LeRobotTrain] = {}
+
+
+def pytest_collection_finish(session):
+    if any("lerobot_train" in item.fixturenames for item in session.items):
+        RUNNER["process"] = LeRobotTrain()
+
+
+def pytest_sessionfinish(session):
+    if "process" in RUNNER:
+        RUNNER.pop("process").close()
+
+
+@pytest.fixture(scope="session")
+def lerobot_train(tmp_path_factory) -> LeRobotTrain:
+    if "process" not in RUNNER:
+        RUNNER["process"] = LeRobotTrain()
+    runner = RUNNER["process"]
+    runner.folder = tmp_path_factory.mktemp("lerobot_train_runs")
+    return runner

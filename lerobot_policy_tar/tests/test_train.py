@@ -1,11 +1,10 @@
 """The real client: ``lerobot-train --policy.type=<base>_tar`` runs offline for a few steps on a LeRobotDataset written
 here, saves a checkpoint, and the checkpoint loads back with ``from_pretrained`` and acts; bad settings stop it
-before training with a message naming them."""
+before training with a message naming them. The command lines run through ``lerobot-train``'s entry point, all in one
+process (the ``lerobot_train`` fixture of ``conftest.py``)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -13,7 +12,6 @@ import torch
 from conftest import ACTION_DIM
 
 STEPS = 3
-LEROBOT_TRAIN = Path(sys.executable).with_name("lerobot-train")
 TINY = {
     "act_tar": [
         "--policy.chunk_size=4", "--policy.n_action_steps=4", "--policy.dim_model=32", "--policy.dim_feedforward=64",
@@ -34,14 +32,33 @@ TINY = {
 }  # fmt: skip
 
 
-def lerobot_train(dataset: Path, out: Path, policy_type: str, *extra: str) -> subprocess.CompletedProcess:
-    command = [
-        str(LEROBOT_TRAIN), "--dataset.repo_id=local/tar_tiny", f"--dataset.root={dataset}",
-        f"--policy.type={policy_type}", "--policy.device=cpu", "--policy.push_to_hub=false", "--batch_size=4",
-        f"--steps={STEPS}", f"--save_freq={STEPS}", "--log_freq=1", "--num_workers=0", f"--output_dir={out}",
-        "--wandb.enable=false", *extra,
+def lerobot_train_args(dataset: Path, out: Path, policy_type: str, *extra: str) -> list[str]:
+    return [
+        "--dataset.repo_id=local/tar_tiny", f"--dataset.root={dataset}", f"--policy.type={policy_type}",
+        "--policy.device=cpu", "--policy.push_to_hub=false", "--batch_size=4", f"--steps={STEPS}",
+        f"--save_freq={STEPS}", "--log_freq=1", "--num_workers=0", f"--output_dir={out}", "--wandb.enable=false",
+        *extra,
     ]  # fmt: skip
-    return subprocess.run(command, capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def runs(state_dataset, image_dataset, smolvlm, lerobot_train, tmp_path_factory) -> dict:
+    """The module's ``lerobot-train`` command lines, by name, each run once by the ``lerobot_train`` fixture
+    (``lerobot-train``'s entry point in one process): its exit status and output, and its ``--output_dir``."""
+    lines = {
+        "diffusion_tar-image": (
+            image_dataset, "diffusion_tar", *TINY["diffusion_tar"], "--policy.tar.signal=time_normalized"
+        ),
+        "smolvla_tar": (image_dataset, "smolvla_tar", *TINY["smolvla_tar"], f"--policy.vlm_model_name={smolvlm}"),
+        "gamma": (state_dataset, "act_tar", *TINY["act_tar"], "--policy.tar.gamma=0"),
+        "slice_len": (state_dataset, "act_tar", *TINY["act_tar"], "--policy.tar.slice_len=99"),
+        "pi0_fast": (state_dataset, "pi0_fast_tar"),
+    }  # fmt: skip
+    folder = tmp_path_factory.mktemp("train")
+    return {
+        name: (lerobot_train(lerobot_train_args(data, folder / name, kind, *extra)), folder / name)
+        for name, (data, kind, *extra) in lines.items()
+    }
 
 
 def load_and_act(checkpoint: Path, dataset: Path, policy_class) -> torch.Tensor:
@@ -67,52 +84,45 @@ def load_and_act(checkpoint: Path, dataset: Path, policy_class) -> torch.Tensor:
 # diffusion run ranks by time_normalized, whose running means the checkpoint holds.
 @pytest.mark.parametrize("policy_type", ["diffusion_tar"])
 @pytest.mark.parametrize("data", ["image"])
-def test_lerobot_train_runs_saves_and_the_checkpoint_acts(policy_type, data, request, tmp_path):
+def test_lerobot_train_runs_saves_and_the_checkpoint_acts(policy_type, data, request, runs):
     from lerobot_policy_tar.modeling_tar import ACTTARPolicy, DiffusionTARPolicy
 
     dataset = request.getfixturevalue(f"{data}_dataset")
-    done = lerobot_train(
-        dataset, tmp_path / "out", policy_type, *TINY[policy_type], "--policy.tar.signal=time_normalized"
-    )
+    done, out = runs[f"{policy_type}-{data}"]
     assert done.returncode == 0, done.stderr[-4000:]
     assert f"step:{STEPS} " in done.stderr and "tar_mix:1.000" in done.stderr, done.stderr[-4000:]
-    checkpoint = tmp_path / "out" / "checkpoints" / "last" / "pretrained_model"
+    checkpoint = out / "checkpoints" / "last" / "pretrained_model"
     policy_class = {"act_tar": ACTTARPolicy, "diffusion_tar": DiffusionTARPolicy}[policy_type]
     action = load_and_act(checkpoint, dataset, policy_class)
     assert action.shape == (1, ACTION_DIM) and torch.isfinite(action).all()
 
 
-def test_lerobot_train_runs_smolvla_tar_on_a_tiny_local_smolvlm_and_the_checkpoint_acts(
-    image_dataset, smolvlm, tmp_path
-):
+def test_lerobot_train_runs_smolvla_tar_on_a_tiny_local_smolvlm_and_the_checkpoint_acts(image_dataset, runs):
     from lerobot_policy_tar.modeling_tar import SmolVLATARPolicy
 
-    extra = [*TINY["smolvla_tar"], f"--policy.vlm_model_name={smolvlm}"]
-    done = lerobot_train(image_dataset, tmp_path / "out", "smolvla_tar", *extra)
+    done, out = runs["smolvla_tar"]
     assert done.returncode == 0, done.stderr[-4000:]
     assert f"step:{STEPS} " in done.stderr and "tar_mix:1.000" in done.stderr, done.stderr[-4000:]
-    action = load_and_act(
-        tmp_path / "out" / "checkpoints" / "last" / "pretrained_model", image_dataset, SmolVLATARPolicy
-    )
+    action = load_and_act(out / "checkpoints" / "last" / "pretrained_model", image_dataset, SmolVLATARPolicy)
     assert action.shape == (1, ACTION_DIM) and torch.isfinite(action).all()
 
 
 @pytest.mark.parametrize(
-    "extra, message",
+    "run, message",
     [
-        (["--policy.tar.gamma=0"], "policy.tar: gamma must be a finite number > 0"),
-        (["--policy.tar.slice_len=99"], "policy.tar.slice_len=99 is longer than every episode of the dataset"),
+        ("gamma", "policy.tar: gamma must be a finite number > 0"),
+        ("slice_len", "policy.tar.slice_len=99 is longer than every episode of the dataset"),
     ],
     ids=["gamma", "slice_len"],
 )
-def test_lerobot_train_refuses_bad_tar_settings_before_training(extra, message, state_dataset, tmp_path):
-    done = lerobot_train(state_dataset, tmp_path / "out", "act_tar", *TINY["act_tar"], *extra)
+def test_lerobot_train_refuses_bad_tar_settings_before_training(run, message, runs):
+    done, _ = runs[run]
     assert done.returncode != 0
     assert message in done.stderr + done.stdout, done.stderr[-4000:]
     assert "Start offline training" not in done.stderr
 
 
-def test_lerobot_train_refuses_pi0_fast_with_the_reason(state_dataset, tmp_path):
-    done = lerobot_train(state_dataset, tmp_path / "out", "pi0_fast_tar")
+def test_lerobot_train_refuses_pi0_fast_with_the_reason(runs):
+    done, _ = runs["pi0_fast"]
     assert done.returncode != 0
     assert "pi0_fast is not supported by TAR" in done.stderr + done.stdout, done.stderr[-4000:]

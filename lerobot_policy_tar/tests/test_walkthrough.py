@@ -63,10 +63,11 @@ def commands(block: str) -> list[str]:
     return [line for line in block.replace("\\\n", " ").splitlines() if line.strip()]
 
 
-def run_block(block: str, cwd: Path, env: dict[str, str]) -> list[tuple[str, subprocess.CompletedProcess]]:
+def run_block(block: str, cwd: Path, env: dict[str, str], train) -> list[tuple[str, subprocess.CompletedProcess]]:
     """Run a block's lines in ``cwd`` as bash would: ``NAME=$(...)`` assigns its output to ``env[NAME]``, ``$NAME``
-    expands; ``lerobot-tar`` runs in this process (its ``main``), every other command as a process. Stops at the
-    first failure."""
+    expands; ``lerobot-tar`` runs in this process (its ``main``), ``lerobot-train`` by ``train`` (the
+    ``lerobot_train`` fixture: its entry point, in the process that runs every test's ``lerobot-train``), every
+    other command as a process. Stops at the first failure."""
     from lerobot_policy_tar.cli import main
 
     done = []
@@ -85,6 +86,8 @@ def run_block(block: str, cwd: Path, env: dict[str, str]) -> list[tuple[str, sub
                 finally:
                     os.chdir(cwd_before)
                 result = subprocess.CompletedProcess(argv, status, "", "")
+            elif Path(argv[0]).name == "lerobot-train":
+                result = train(argv[1:], cwd=cwd)
             else:
                 result = subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=900, env=env)
         done.append((line, result))
@@ -94,7 +97,7 @@ def run_block(block: str, cwd: Path, env: dict[str, str]) -> list[tuple[str, sub
 
 
 @pytest.fixture(scope="session")
-def walkthrough(tmp_path_factory) -> dict:
+def walkthrough(tmp_path_factory, lerobot_train) -> dict:
     """The page's first block run in a fresh folder (beside the two environments), and tar-rl's side of its data."""
     if not TAR_RL_PYTHON.is_file():
         pytest.skip(f"tar-rl's environment is missing ({TAR_RL_PYTHON}): the README's test command makes it first")
@@ -103,7 +106,7 @@ def walkthrough(tmp_path_factory) -> dict:
     (home / ".venv-lerobot").symlink_to(Path(sys.executable).parents[1])
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
     blocks = page_blocks()
-    ran = run_block(blocks[0], home, env)
+    ran = run_block(blocks[0], home, env, lerobot_train)
     assert all(r.returncode == 0 for _, r in ran), "\n".join(
         f"{c}\n{r.stdout[-2000:]}{r.stderr[-3000:]}" for c, r in ran
     )
@@ -113,7 +116,15 @@ def walkthrough(tmp_path_factory) -> dict:
     script = Path(__file__).with_name("tar_rl_side.py")
     done = subprocess.run([str(TAR_RL_PYTHON), str(script), str(demos), str(side)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]
-    return {"home": home, "env": env, "ran": ran, "demos": demos, "side": side, "blocks": blocks}
+    return {
+        "home": home,
+        "env": env,
+        "ran": ran,
+        "demos": demos,
+        "side": side,
+        "blocks": blocks,
+        "train": lerobot_train,
+    }
 
 
 # -- The page ---------------------------------------------------------------------------------------
@@ -275,7 +286,7 @@ def test_post_training_from_the_base_checkpoint_runs_as_the_page_says_without_wa
     from safetensors.torch import load_file
 
     home = walkthrough["home"]
-    ran = run_block(walkthrough["blocks"][1], home, dict(walkthrough["env"]))
+    ran = run_block(walkthrough["blocks"][1], home, dict(walkthrough["env"]), walkthrough["train"])
     train = ran[-1][1]
     assert len(ran) == 2 and train.returncode == 0, train.stderr[-3000:]
     log = train.stderr + train.stdout

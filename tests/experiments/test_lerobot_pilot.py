@@ -13,6 +13,7 @@ import json
 import os
 import pickle
 import subprocess
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -66,18 +67,103 @@ class Replay(nn.Module):
         return chunk
 
 
-def _run(args: list, **kwargs) -> subprocess.CompletedProcess:
-    done = subprocess.run([str(a) for a in args], capture_output=True, text=True, timeout=600, **kwargs)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return done
+#: The plugin environment's side of these tests, one process for all of them (LeRobot starts once): it reads one
+#: JSON request a line on stdin and answers each with one ``REPLY <json>`` line on stdout (LeRobot may print too).
+#: ``{"write": FOLDER}``: ``tiny_checkpoint.py``'s tiny ``act`` checkpoint; ``{"chunks": [FOLDER, IN, OUT]}``: its
+#: chunks computed by hand; ``{"parse": LINES}``: the command lines parsed by LeRobot's config parser as
+#: ``lerobot-train`` parses them, after importing the plugin (as ``lerobot-train`` does), a summary of each.
+PLUGIN_SIDE = """
+import json, runpy, shlex, sys
+from pathlib import Path
+import numpy as np
+import draccus
+import lerobot_policy_tar  # registers act_tar
+from lerobot.configs.train import TrainPipelineConfig
+
+tiny = runpy.run_path(sys.argv[1])
+
+
+def parse(lines):
+    out = []
+    for line in lines:
+        cfg = draccus.parse(TrainPipelineConfig, args=shlex.split(line)[1:])
+        p = cfg.policy
+        out.append({
+            "type": p.type, "batch": cfg.batch_size, "steps": cfg.steps, "dim": p.dim_model, "ffn": p.dim_feedforward,
+            "pre_norm": p.pre_norm, "dropout": p.dropout, "chunk": p.chunk_size, "ensemble": p.temporal_ensemble_coeff,
+            "norm": sorted(k for k, v in p.normalization_mapping.items() if v.value == "MEAN_STD"),
+            "lr": cfg.optimizer.lr, "clip": cfg.optimizer.grad_clip_norm, "warmup": cfg.scheduler.num_warmup_steps,
+            "tar": [p.tar.start, p.tar.ramp, p.tar.slice_len] if hasattr(p, "tar") else None,
+        })
+    return out
+
+
+for request in sys.stdin:
+    request = json.loads(request)
+    if "write" in request:
+        tiny["write"](Path(request["write"]))
+        reply = None
+    elif "chunks" in request:
+        folder, given, out = request["chunks"]
+        given = np.load(given)
+        np.savez(out, chunks=tiny["chunks"](Path(folder), given["observations"], given["tasks"].tolist()))
+        reply = None
+    else:
+        reply = parse(request["parse"])
+    print("REPLY " + json.dumps(reply), flush=True)
+"""
+
+
+class PluginSide:
+    """:data:`PLUGIN_SIDE` running in the plugin's environment: :meth:`ask` sends a request, returns its reply (a
+    request that fails ends the process: the assertion holds its stderr's end)."""
+
+    def __init__(self):
+        env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+        command = [str(LEROBOT_PYTHON), "-c", PLUGIN_SIDE, str(TINY)]
+        self.errors = tempfile.TemporaryFile()
+        self.process = subprocess.Popen(
+            command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.errors, text=True, env=env
+        )
+
+    def ask(self, **request):
+        self.process.stdin.write(json.dumps(request) + "\n")
+        self.process.stdin.flush()
+        for line in self.process.stdout:
+            if line.startswith("REPLY "):
+                return json.loads(line[len("REPLY ") :])
+        self.errors.seek(0)
+        raise AssertionError(self.errors.read().decode(errors="replace")[-3000:])
+
+    def close(self):
+        self.process.stdin.close()
+        assert self.process.wait(timeout=60) == 0
+        self.process.stdout.close()
+        self.errors.close()
+
+
+@pytest.fixture(scope="module")
+def plugin_side():
+    side = PluginSide()
+    yield side
+    side.close()
 
 
 @needs_plugin
 @pytest.mark.slow
-def test_a_lerobot_checkpoint_rolls_out_as_its_chunks_computed_in_its_own_environment(tmp_path):
+def test_a_server_that_cannot_load_the_checkpoint_is_reported_in_one_line(tmp_path, plugin_side):
+    # The first test to use plugin_side: its process imports LeRobot while this server does.
+    model = lerobot_pilot.LeRobotChunks(LEROBOT_PYTHON, tmp_path)
+    with pytest.raises(RuntimeError, match=r"ended: lerobot-tar serve: .* is not a LeRobot policy checkpoint"):
+        model.start()
+
+
+@needs_plugin
+@pytest.mark.slow
+def test_a_lerobot_checkpoint_rolls_out_as_its_chunks_computed_in_its_own_environment(tmp_path, plugin_side):
     run = tmp_path / "outputs" / "checkpoints" / "000002"
     checkpoint = run / "pretrained_model"
-    _run([LEROBOT_PYTHON, TINY, "write", checkpoint])
+    plugin_side.ask(write=str(checkpoint))
     (run / "training_state").mkdir()
     (run / "training_state" / "training_step.json").write_text('{"step": 2}')
     model = lerobot_pilot.LeRobotChunks(LEROBOT_PYTHON, checkpoint)
@@ -110,7 +196,7 @@ def test_a_lerobot_checkpoint_rolls_out_as_its_chunks_computed_in_its_own_enviro
     observations = torch.stack([call["observation"] for call in calls]).numpy()  # [T, N, 39]
     t, n = observations.shape[:2]
     np.savez(tmp_path / "in.npz", observations=observations.reshape(t * n, 39), tasks=np.array([REACH] * (t * n)))
-    _run([LEROBOT_PYTHON, TINY, "chunks", checkpoint, tmp_path / "in.npz", tmp_path / "out.npz"])
+    plugin_side.ask(chunks=[str(checkpoint), str(tmp_path / "in.npz"), str(tmp_path / "out.npz")])
     chunks = np.load(tmp_path / "out.npz")["chunks"].reshape(t, n, 8, 4)
     replay = ChunkedActor(Replay(chunks), horizon=8, history=1, execution="ensemble", ensemble_decay=0.01)
     from tensordict import TensorDict
@@ -121,14 +207,6 @@ def test_a_lerobot_checkpoint_rolls_out_as_its_chunks_computed_in_its_own_enviro
         torch.testing.assert_close(call["action"], expected, rtol=1e-4, atol=1e-5)
     actions = torch.stack([call["action"] for call in calls])
     assert actions.std(0).max() > 1e-3 and (actions.abs() < 1).any()  # actions that move with the observations
-
-
-@needs_plugin
-@pytest.mark.slow
-def test_a_server_that_cannot_load_the_checkpoint_is_reported_in_one_line(tmp_path):
-    model = lerobot_pilot.LeRobotChunks(LEROBOT_PYTHON, tmp_path)
-    with pytest.raises(RuntimeError, match=r"ended: lerobot-tar serve: .* is not a LeRobot policy checkpoint"):
-        model.start()
 
 
 def test_a_missing_environment_is_named():
@@ -162,33 +240,11 @@ def test_the_plan_matches_r4_and_the_act_head():
     assert lines[-1].endswith("--tasks mt50 --rollouts 20 --seed 1000 --out pilot/eval/act_tar-seed0")
 
 
-PARSE = """
-import json, shlex, sys
-import draccus
-import lerobot_policy_tar  # registers act_tar
-from lerobot.configs.train import TrainPipelineConfig
-
-out = []
-for line in sys.stdin.read().splitlines():
-    cfg = draccus.parse(TrainPipelineConfig, args=shlex.split(line)[1:])
-    p = cfg.policy
-    out.append({
-        "type": p.type, "batch": cfg.batch_size, "steps": cfg.steps, "dim": p.dim_model, "ffn": p.dim_feedforward,
-        "pre_norm": p.pre_norm, "dropout": p.dropout, "chunk": p.chunk_size, "ensemble": p.temporal_ensemble_coeff,
-        "norm": sorted(k for k, v in p.normalization_mapping.items() if v.value == "MEAN_STD"),
-        "lr": cfg.optimizer.lr, "clip": cfg.optimizer.grad_clip_norm, "warmup": cfg.scheduler.num_warmup_steps,
-        "tar": [p.tar.start, p.tar.ramp, p.tar.slice_len] if hasattr(p, "tar") else None,
-    })
-print(json.dumps(out))
-"""
-
-
 @needs_plugin
 @pytest.mark.slow
-def test_lerobot_train_reads_the_plans_lines_as_meant():
+def test_lerobot_train_reads_the_plans_lines_as_meant(plugin_side):
     lines = [line for line in lerobot_pilot.pilot_commands() if "lerobot-train" in line]
-    done = _run([LEROBOT_PYTHON, "-c", PARSE], input="\n".join(lines), env={**os.environ, "HF_HUB_OFFLINE": "1"})
-    act, act_tar = json.loads(done.stdout.strip().splitlines()[-1])
+    act, act_tar = plugin_side.ask(parse=lines)
     common = {"steps": 3743, "dim": 64, "ffn": 128, "pre_norm": True, "dropout": 0.0, "chunk": 8, "ensemble": 0.01}
     common |= {"norm": ["ACTION", "ENV", "STATE", "VISUAL"], "lr": 1e-3, "clip": 1.0, "warmup": 200}
     assert act == {**common, "type": "act", "batch": 1024, "tar": None}
