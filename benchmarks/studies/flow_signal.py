@@ -53,7 +53,7 @@ from benchmarks.studies.records import read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
-from benchmarks.studies.writers import comparison_lines, fit_markdown, fmt_num, group_lines, write_outputs
+from benchmarks.studies.writers import comparison_lines, fmt_num, groups_and_fit_lines, write_outputs
 
 __all__ = [
     "CANDIDATES",
@@ -401,18 +401,8 @@ def decision_markdown(rows, groups: pd.DataFrame, fits, pilot: Sequence[dict], r
         "MDE: the smallest true Δ success a paired t-test detects with 80% power at the observed spread. T higher: "
         "pairs where T's success is higher.",
         "",
-        "## Success per difficulty group",
-        "",
-        *group_lines(groups),
+        *groups_and_fit_lines(groups, fits, FINAL_SHARE),
     ]
-    if fits:
-        out += ["", "## Arms: fit and weights", ""]
-        out += fit_markdown(pd.DataFrame(fits), ["stage", "arm", "seeds"])
-        out += [
-            "",
-            "Means over the seeds every arm of the stage has; largest weight and ESS (fraction of valid steps) over "
-            f"the last {FINAL_SHARE:.0%} of training steps (a uniform run's weights are all 1).",
-        ]
     if pilot:
         out += ["", "## The pilot: uniform per time sampling (tuning evaluation seed)", ""]
         out += ["| times | seeds | success % per seed | mean |", "|---|---|---|---|"]

@@ -46,7 +46,7 @@ from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
 from benchmarks.studies.sweep import execute
-from benchmarks.studies.writers import comparison_lines, fit_markdown, fmt_num, group_lines, write_outputs
+from benchmarks.studies.writers import comparison_lines, fmt_num, groups_and_fit_lines, write_outputs
 
 __all__ = [
     "BASE_ARMS",
@@ -310,18 +310,8 @@ def decision_markdown(rows, groups: pd.DataFrame, fits, tune: Sequence[dict], re
         "on R6's pairs, and the perturbation arms against uniform are secondary). MDE: the smallest true Δ success a "
         "paired t-test detects with 80% power at the observed spread. T higher: pairs where T's success is higher.",
         "",
-        "## Success per difficulty group",
-        "",
-        *group_lines(groups),
+        *groups_and_fit_lines(groups, fits, FINAL_SHARE),
     ]
-    if fits:
-        out += ["", "## Arms: fit and weights", ""]
-        out += fit_markdown(pd.DataFrame(fits), ["stage", "arm", "seeds"])
-        out += [
-            "",
-            "Means over the seeds every arm of the stage has; largest weight and ESS (fraction of valid steps) over "
-            f"the last {FINAL_SHARE:.0%} of training steps (a uniform run's weights are all 1).",
-        ]
     if tune:
         out += ["", "## Tuning uniform's learning rate (evaluation seed 2000)", ""]
         frame = pd.DataFrame(tune)

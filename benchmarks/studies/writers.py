@@ -21,6 +21,7 @@ __all__ = [
     "fmt_num",
     "fmt_p",
     "group_lines",
+    "groups_and_fit_lines",
     "table_one_markdown",
     "write_outputs",
 ]
@@ -83,6 +84,22 @@ def fit_markdown(fit: pd.DataFrame, keys: Sequence[str]) -> list[str]:
         cells += [fmt_num(r["weight_max"], 2), fmt_num(r["weight_ess"], 2)]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
+
+
+def groups_and_fit_lines(groups: pd.DataFrame, fits: Sequence[dict], final_share: float) -> list[str]:
+    """A decision table's sections after its comparisons: success per difficulty group (:func:`group_lines`) and,
+    when there are ``fits``, the arms' fit and weights (:func:`fit_markdown` by stage, arm and seeds), their weights
+    taken over the last ``final_share`` of training steps."""
+    out = ["## Success per difficulty group", "", *group_lines(groups)]
+    if fits:
+        out += ["", "## Arms: fit and weights", ""]
+        out += fit_markdown(pd.DataFrame(fits), ["stage", "arm", "seeds"])
+        out += [
+            "",
+            "Means over the seeds every arm of the stage has; largest weight and ESS (fraction of valid steps) over "
+            f"the last {final_share:.0%} of training steps (a uniform run's weights are all 1).",
+        ]
+    return out
 
 
 def write_outputs(dest: Path, texts: dict[str, str], tables: dict[str, pd.DataFrame], prov: dict | None) -> None:
