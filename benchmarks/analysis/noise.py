@@ -11,15 +11,15 @@ latent it samples from its encoder; the MLP's is a function of the step alone. T
 segment, so what it up-weights is the within-segment order of the losses: where that order changes from one draw
 to the next, the weights follow the draw rather than the step.
 
-For every finished uniform run of ``--from`` with its ``checkpoint.pt`` (the policy trained with uniform weights:
-the reference, as in the fit diagnostics; ``--runs`` names some of them), the command rebuilds the policy and
-objective from the final checkpoint (:mod:`.rebuild`), computes the per-step losses along the run's recorded
-demonstrations twice in training mode (as TAR sees them; no gradient; two disjoint sets of torch seeds,
-:func:`draw_seeds`), cuts each demonstration into consecutive segments of the run's ``data.slice_len`` (the last
-one shorter, masked) and writes one row per run and ``K`` of ``--draws`` (:data:`COLUMNS`, to ``--out``, default
+For every uniform run of ``--from`` trained to its last step with its ``checkpoint.pt``, evaluated or not (the policy
+trained with uniform weights: the reference, as in the fit diagnostics; ``--runs`` names some of them), the command
+rebuilds the policy and objective from the final checkpoint (:mod:`.rebuild`), computes the per-step losses along the
+run's recorded demonstrations twice in training mode (as TAR sees them; no gradient; two disjoint sets of torch seeds,
+:func:`draw_seeds`), cuts each demonstration into consecutive segments of the run's ``data.slice_len`` (the last one
+shorter, masked) and writes one row per run and ``K`` of ``--draws`` (:data:`COLUMNS`, to ``--out``, default
 ``results/regimes/diagnosis/noise.csv``). With ``K = 1`` (the default) a draw is one pass, the loss TAR weighs in
-training; with ``K > 1`` each draw is the mean of ``K`` passes, a lower-variance estimate of each step's loss that
-TAR could weigh instead:
+training; with ``K > 1`` each draw is the mean of ``K`` passes, a lower-variance estimate of each step's loss that TAR
+could weigh instead:
 
 * ``loss_r``: the within-segment correlation of the two draws' losses
   (:func:`tar_rl.diagnostics.within_segment_correlation`): 1 for a deterministic loss;
@@ -390,8 +390,9 @@ def noise_table(
     signals: Sequence[str] = ("loss",),
     names: Sequence[str] | None = None,
 ) -> pd.DataFrame:
-    """:func:`noise_rows` of every finished uniform run of ``runs_dir`` with its checkpoint (``names``: only
-    these), for each of ``signals`` and ``passes``, ordered as written (:func:`_ordered`).
+    """:func:`noise_rows` of every trained uniform run of ``runs_dir`` with its checkpoint (finished, or trained
+    with ``eval.rollouts=0``: the command reads the trained policy only; ``names``: only these), for each of
+    ``signals`` and ``passes``, ordered as written (:func:`_ordered`).
 
     Raises:
         SystemExit: ``runs_dir`` is not a folder or holds no such run; a run of ``names`` is not such a run; a
@@ -406,16 +407,16 @@ def noise_table(
         if names is not None and path.name not in names:
             continue
         run = load_run(path)
-        if run.finished and run.objective == "uniform":
+        if (run.finished or run.not_evaluated) and run.objective == "uniform":
             found.append(run)
     if names is not None:
         absent = sorted(set(names) - {run.path.name for run in found})
         if absent:
             raise SystemExit(
-                f"{WHO}: {', '.join(absent)}: not a finished uniform run with its {CHECKPOINT} in {runs_dir}"
+                f"{WHO}: {', '.join(absent)}: not a trained uniform run with its {CHECKPOINT} in {runs_dir}"
             )
     if not found:
-        raise SystemExit(f"{WHO}: no finished uniform run with its {CHECKPOINT} in {runs_dir}")
+        raise SystemExit(f"{WHO}: no trained uniform run with its {CHECKPOINT} in {runs_dir}")
     for run in found:
         run_signals(run, signals)  # refuse before computing anything
     demos: dict = {}

@@ -74,12 +74,14 @@ def test_weight_presets_are_the_libraries_defaults_and_the_gentle_preset():
 
 @pytest.fixture(scope="module")
 def tiny_runs(tmp_path_factory) -> Path:
-    """Tiny finished runs in one folder, on a dataset folder of their own: uniform MLP, uniform flow, tar MLP."""
+    """Tiny trained runs in one folder, on a dataset folder of their own: uniform MLP (trained without evaluation:
+    the command reads the trained policy only), uniform flow, tar MLP."""
     from tar_rl.recipes import train
 
     tmp = tmp_path_factory.mktemp("noise")
     data = tmp_path_factory.mktemp("noise_data")
-    for overrides in (("objective=uniform",), ("objective=uniform", "policy=flow"), ("objective=tar",)):
+    runs = (("objective=uniform", "eval.rollouts=0"), ("objective=uniform", "policy=flow"), ("objective=tar",))
+    for overrides in runs:
         train(tiny(tmp, data, *overrides, "diagnostics.heldout_demos=0", "logging.record_episodes=2"))
     return tmp / "runs"
 
@@ -127,7 +129,7 @@ def test_the_two_draws_take_disjoint_seeds():
 def test_refusals_name_the_folder_and_the_bad_draws(tmp_path, capsys):
     with pytest.raises(SystemExit, match="is not a folder"):
         noise.noise_table(tmp_path / "absent")
-    with pytest.raises(SystemExit, match=r"no finished uniform run with its checkpoint\.pt"):
+    with pytest.raises(SystemExit, match=r"no trained uniform run with its checkpoint\.pt"):
         noise.noise_table(tmp_path)
     with pytest.raises(SystemExit):
         noise.noise_main(["--from", str(tmp_path), "--draws", "0"])
@@ -301,5 +303,5 @@ def test_a_signal_the_head_does_not_offer_is_refused_naming_the_head_and_its_sig
     assert not (tmp_path / "n.csv").exists()
     with pytest.raises(SystemExit, match=r"offers the ranking signals \['loss', 'action_error', 'time_normalized'\]"):
         noise.noise_table(tiny_runs, signals=["velocity"], names=[_named(tiny_runs, "uniform-flow", 0)])
-    with pytest.raises(SystemExit, match=r"absent-run: not a finished uniform run"):
+    with pytest.raises(SystemExit, match=r"absent-run: not a trained uniform run"):
         noise.noise_table(tiny_runs, names=["absent-run"])
