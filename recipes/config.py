@@ -27,10 +27,12 @@ batch 64 x 16 and 20 evaluation rollouts per task: about 10 minutes on 2 CPU cor
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import functools
 import inspect
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -55,6 +57,7 @@ __all__ = [
     "ObjectiveConfig",
     "OptimConfig",
     "TrainConfig",
+    "as_config_error",
     "check_choice",
     "check_int",
     "config_dict",
@@ -103,6 +106,16 @@ def check_int(name: str, value, low: int, high: int | None = None) -> None:
 def check_choice(name: str, value, choices) -> None:
     if value not in choices:
         raise ConfigError(f"{name}={value!r} is not valid; choose one of {list(choices)}")
+
+
+@contextlib.contextmanager
+def as_config_error(prefix: str = "", errors: tuple[type[Exception], ...] = (ValueError,)) -> Iterator[None]:
+    """An error of ``errors`` raised in the block becomes a :class:`ConfigError` of its message after ``prefix``: the
+    checks a config relies on (a weighting's parameters, a suite, a source run) refuse with their own errors."""
+    try:
+        yield
+    except errors as err:
+        raise ConfigError(f"{prefix}{err}") from None
 
 
 def bounded(default: int | None, low: int, high: int | None = None) -> Any:
@@ -178,10 +191,8 @@ class ObjectiveConfig:
                 f"objective.start + objective.ramp must be <= 1 (the ramp ends by the last step), got {self.start} + "
                 f"{self.ramp} = {self.start + self.ramp:g}: TAR would never reach full strength; lower one of them"
             )
-        try:
+        with as_config_error("objective."):
             objective_params(self)
-        except ValueError as err:
-            raise ConfigError(f"objective.{err}") from None
 
 
 def _config_field(f: dataclasses.Field) -> tuple[str, Any, Any]:

@@ -18,7 +18,16 @@ from tar_rl.policies import POLICIES, DataInfo, Policy
 
 from . import diagnose, post_training
 from .builders import given_dataset, make_objective, make_policy, torch_device
-from .config import DEFAULT_TASKS, ObjectiveConfig, TrainConfig, check_choice, check_int, config_dict, typed_config
+from .config import (
+    DEFAULT_TASKS,
+    ObjectiveConfig,
+    TrainConfig,
+    as_config_error,
+    check_choice,
+    check_int,
+    config_dict,
+    typed_config,
+)
 from .errors import ConfigError
 
 __all__ = ["Job", "check_slice_len", "resolve_config", "validate"]
@@ -56,10 +65,8 @@ class Job:
 def _resolve_tasks(suite: Suite, name: str, spec: list[str]) -> tuple[str, ...]:
     if not spec:
         raise ConfigError(f"{name} is empty: name at least one task or group")
-    try:
+    with as_config_error(f"{name}: "):
         return tuple(suite.resolve(list(spec)))
-    except ValueError as err:
-        raise ConfigError(f"{name}: {err}") from None
 
 
 def validate(config: Any) -> Job:
@@ -88,15 +95,23 @@ def validate(config: Any) -> Job:
     else:
         _check_slice_len_before_collection(cfg.data.slice_len, suite)
     torch_device(cfg.device)
-    _check_diagnostics(cfg)
+    with as_config_error():  # the held-out seeds against the others (the group's numbers are its own check)
+        diagnose.check_heldout_seeds(cfg)
     ev, data = cfg.eval, cfg.data  # the evaluator's settings, built once: the suites read these, not the sections
     evaluation = None
     if ev.rollouts:
         evaluation = EvalSpec(ev.rollouts, ev.seed, ev.horizon, ev.workers, data.image_size, data.path)
-    _check_seeds(cfg, evaluation, suite, given)
+        # Demonstration and evaluation variations never overlap: checked on the largest number of attempts
+        # collection may make, before collecting; on a given dataset, on the seeds it used.
+        where = f"data.path={data.path}" if given is not None else f"data.seed={data.seed}"
+        with as_config_error(f"{where} and eval.seed={ev.seed}: "):
+            if given is not None:
+                suite.check_dataset(given, evaluation)
+            else:
+                suite.check_seeds(data.seed, data.n_demos, evaluation)
     # The objective and the head are built once on placeholder data (or the given dataset's
     # description) so that their own checks run now.
-    try:
+    with as_config_error(errors=(ValueError, TypeError)):
         if given is not None:
             placeholder = DataInfo.from_metadata(given.metadata)
         else:
@@ -110,13 +125,9 @@ def validate(config: Any) -> Job:
             )
         policy = make_policy(cfg.policy, placeholder)
         make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
-    except (ValueError, TypeError) as err:
-        raise ConfigError(str(err)) from None
     if cfg.objective.name == "tar_arm":  # the weighting that reads gripper_dims, indices into the action dims
-        try:
+        with as_config_error("objective."):
             check_gripper_dims(tuple(cfg.objective.gripper_dims), placeholder.action_dim)
-        except ValueError as err:
-            raise ConfigError(f"objective.{err}") from None
     _check_init(cfg, policy, placeholder)
     return Job(cfg, **tasks, evaluation=evaluation)
 
@@ -147,10 +158,8 @@ def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset 
     data, ev = cfg.data, cfg.eval
     check_choice("data.suite", data.suite, SUITES.names())
     given = given_dataset(data.path) if data.path else None
-    try:
+    with as_config_error():
         suite = suite_for(data.suite, given)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
     suite_name = suite.name if suite is not None else given.source
     if given is not None and suite is None and ev.rollouts:
         raise ConfigError(
@@ -164,10 +173,8 @@ def _check_suite_and_tasks(cfg: TrainConfig) -> tuple[Suite | None, DemoDataset 
     if ev.rollouts:
         eval_tasks = _resolve_tasks(suite, "eval.tasks", ev.tasks) if ev.tasks else train_tasks
     if suite is not None:
-        try:
+        with as_config_error():
             suite.check_config(data, given, train_tasks, eval_tasks)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
     if data.image_size and suite is not None and not suite.images:
         raise ConfigError(f"data.image_size={data.image_size}: the {suite_name} suite has no image observations")
     return suite, given, {"train_tasks": train_tasks, "eval_tasks": eval_tasks, "suite": suite_name}
@@ -215,30 +222,6 @@ def _check_slice_len_before_collection(slice_len: int, suite: Suite) -> None:
         )
 
 
-def _check_diagnostics(cfg: TrainConfig) -> None:
-    """The held-out seeds against the training and evaluation ones (the group's numbers are its own check)."""
-    try:
-        diagnose.check_heldout_seeds(cfg)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-
-
-def _check_seeds(cfg: TrainConfig, evaluation: EvalSpec | None, suite: Suite | None, given: DemoDataset | None) -> None:
-    """Demonstration and evaluation variations never overlap: checked on the largest number of attempts
-    collection may make, before collecting; on a given dataset, on the seeds it used."""
-    data = cfg.data
-    if evaluation is None:
-        return
-    try:
-        if given is not None:
-            suite.check_dataset(given, evaluation)
-        else:
-            suite.check_seeds(data.seed, data.n_demos, evaluation)
-    except ValueError as err:
-        where = f"data.path={data.path}" if given is not None else f"data.seed={data.seed}"
-        raise ConfigError(f"{where} and eval.seed={evaluation.seed}: {err}") from None
-
-
 def _check_init(cfg: TrainConfig, policy: Policy, info: DataInfo) -> None:
     """Check ``init.from`` (if set) against the policy built from ``cfg`` and record the source's name as
     ``init.source`` (part of the run's identity)."""
@@ -249,9 +232,7 @@ def _check_init(cfg: TrainConfig, policy: Policy, info: DataInfo) -> None:
     if not init.get("from"):
         init.pop("source", None)
         return
-    try:
+    with as_config_error(errors=(post_training.InitError,)):
         source = post_training.load_source(init["from"])
         post_training.check_fits(source, cfg.policy.name, policy, info)
-    except post_training.InitError as err:
-        raise ConfigError(str(err)) from None
     init["source"] = source.name
