@@ -62,6 +62,7 @@ __all__ = [
     "check_int",
     "config_dict",
     "default_config",
+    "group_options",
     "int_rule",
     "objective_config",
     "objective_params",
@@ -552,20 +553,24 @@ OBJECTIVE_PRESETS: dict[str, ObjectiveConfig] = {
 
 
 def register_configs() -> None:
-    """Store the primary config and one option per registered objective and policy in Hydra's ConfigStore."""
+    """Store the primary config and each group's options (:func:`group_options`) in Hydra's ConfigStore."""
     from hydra.core.config_store import ConfigStore
 
     cs = ConfigStore.instance()
     cs.store(name=CONFIG_NAME, node=TrainConfig)
-    for name in WEIGHTINGS:
-        cs.store(group="objective", name=name, node=objective_config(name)(name=name))
-    for name, node in OBJECTIVE_PRESETS.items():
-        cs.store(group="objective", name=name, node=node)
-    for name, spec in POLICIES.items():
-        cs.store(group="policy", name=name, node=spec.config(name=name))
-    for group, options in PRESETS.items():
+    for group, options in group_options().items():
         for name, node in options.items():
             cs.store(group=group, name=name, node=node)
+
+
+def group_options() -> dict[str, dict[str, Any]]:
+    """Each config group's options (``group=option`` on the command line) and their nodes: one per registered
+    weighting, then the presets of one (:data:`OBJECTIVE_PRESETS`), one per registered head, and :data:`PRESETS`."""
+    return {
+        "objective": {**{name: objective_config(name)(name=name) for name in WEIGHTINGS}, **OBJECTIVE_PRESETS},
+        "policy": {name: spec.config(name=name) for name, spec in POLICIES.items()},
+        **PRESETS,
+    }
 
 
 def default_config(objective: str, policy: str) -> dict:

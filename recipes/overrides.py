@@ -19,9 +19,9 @@ from tar_rl.policies import POLICIES
 from .config import (
     CONFIG_NAME,
     OBJECTIVE_PRESETS,
-    PRESETS,
     SECTIONS,
     TrainConfig,
+    group_options,
     int_rule,
     objective_config,
     register_configs,
@@ -35,35 +35,26 @@ __all__ = ["check_overrides"]
 _KINDS = {"Integer": "an integer", "Float": "a number", "Boolean": "a boolean (true or false)", "String": "a string"}
 
 
-def _groups() -> dict[str, list[str]]:
-    """Each config group and its options (``group=option`` on the command line)."""
-    return {
-        "objective": [*WEIGHTINGS, *OBJECTIVE_PRESETS],
-        "policy": list(POLICIES),
-        **{group: list(options) for group, options in PRESETS.items()},
-    }
-
-
-def _fields(cls) -> set[str]:
-    return {f.name for f in dataclasses.fields(cls)}
+def _settings(prefix: str, cls: type) -> set[str]:
+    """The dotted names of the fields of the dataclass ``cls`` under ``prefix`` (``policy.``)."""
+    return {prefix + f.name for f in dataclasses.fields(cls)}
 
 
 def _head_settings(head: str) -> set[str]:
-    return {f"policy.{name}" for name in _fields(POLICIES.get(head).config)}
+    return _settings("policy.", POLICIES.get(head).config)
 
 
 def _objective_settings(option: str) -> set[str]:
     """The settings of the ``objective`` option ``option`` (a weighting, or a preset of one)."""
     node = OBJECTIVE_PRESETS.get(option)
-    return {f"objective.{name}" for name in _fields(type(node) if node is not None else objective_config(option))}
+    return _settings("objective.", type(node) if node is not None else objective_config(option))
 
 
-def _settings() -> set[str]:
+def _job_settings() -> set[str]:
     """Every setting's dotted name but the policy head's and the weighting's (Hydra's ``defaults`` and ``hydra``
     nodes left out)."""
-    scalars = _fields(TrainConfig) - {*SECTIONS, "objective", "policy", "init", "defaults", "hydra"}
-    sections = {f"{section}.{name}" for section, cls in SECTIONS.items() for name in _fields(cls)}
-    return scalars | sections | {"init.from"}
+    scalars = _settings("", TrainConfig) - {*SECTIONS, "objective", "policy", "init", "defaults", "hydra"}
+    return scalars.union({"init.from"}, *(_settings(f"{section}.", cls) for section, cls in SECTIONS.items()))
 
 
 def _suggest(key: str, names: set[str]) -> str:
@@ -92,9 +83,9 @@ def _key_problem(key: str, head: str, objective: str) -> str | None:
         owners = [w for w in WEIGHTINGS if name in _objective_settings(w)]
         hint = f"; it is a setting of objective={'|'.join(owners)}" if owners else _suggest(name, known)
         return f"{key}: objective={objective} has no such setting{hint}"
-    if name in _settings():
+    if name in _job_settings():
         return None
-    known = _settings() | set(_groups()) | _head_settings(head) | _objective_settings(objective)
+    known = _job_settings() | set(group_options()) | _head_settings(head) | _objective_settings(objective)
     return f"{key}: no such setting{_suggest(key, known)}"
 
 
@@ -135,9 +126,10 @@ def _compose(overrides: list[str]) -> None:
         key = getattr(cause, "full_key", None)
         text = (getattr(cause, "msg", None) or str(err)).strip() or type(err).__name__
         missing = re.match(r"In '\w+': Could not find '(\w+)/(.*)'", text)
-        if isinstance(err, MissingConfigException) and missing and missing.group(1) in _groups():
+        if isinstance(err, MissingConfigException) and missing and missing.group(1) in group_options():
             group, value = missing.groups()
-            options, hint = _groups()[group], did_you_mean(value, _groups()[group])
+            options = list(group_options()[group])
+            hint = did_you_mean(value, options)
             raise ConfigError(f"{group}: no option {value!r}{hint}; options: {', '.join(options)}") from None
         if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and key:
             # the override that names it (Hydra names the first part of it that is no setting)
@@ -189,7 +181,7 @@ def check_overrides(argv: list[str]) -> None:
     for override in parsed:  # Hydra adds a key no setting has (+key=value) to the config; tar-rl train has none
         added = override.is_add() or override.is_force_add()
         problem = _key_problem(override.key_or_group, *_chosen(first)) if added else None
-        if problem and override.key_or_group not in _groups():
+        if problem and override.key_or_group not in group_options():
             raise ConfigError(problem)
     _compose(first)
     for i, options in enumerate(lines):
