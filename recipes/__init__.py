@@ -14,12 +14,13 @@ from .builders import (
     make_optimizer,
     make_policy,
 )
+from .config import resolve_config
 from .errors import ConfigError, TrainingError
 from .evaluate import evaluate_checkpoint, policy_from_checkpoint
 from .offline_bc import Trainer, hydra_main, train
 from .record import record_weights
 from .rundir import identity, run_name
-from .validate import resolve_config, validate
+from .validate import validate
 
 __all__ = [
     "ConfigError",

@@ -67,6 +67,7 @@ __all__ = [
     "objective_config",
     "objective_params",
     "register_configs",
+    "resolve_config",
     "setting_bounds",
     "typed_config",
 ]
@@ -581,13 +582,18 @@ def default_config(objective: str, policy: str) -> dict:
     return config_dict(TrainConfig(objective=objective_config(objective)(name=objective), policy=head, **presets))
 
 
+def resolve_config(cfg: Any) -> dict:
+    """A plain dict of the job's settings from a Hydra ``DictConfig``, a :class:`TrainConfig` or a dict (a copy, its
+    values unchecked)."""
+    if isinstance(cfg, dict):
+        return {key: copy.deepcopy(value) for key, value in cfg.items() if key not in ("defaults", "hydra")}
+    return config_dict(typed_config(cfg))
+
+
 def config_dict(cfg: TrainConfig) -> dict:
     """The settings of a typed config as a plain dict: what a run's ``config.yaml``, checkpoint and summary hold
     and what its name is computed from (Hydra's ``defaults`` and ``hydra`` nodes left out)."""
-    config = dataclasses.asdict(cfg)
-    config.pop("defaults", None)
-    config.pop("hydra", None)
-    return config
+    return {key: value for key, value in dataclasses.asdict(cfg).items() if key not in ("defaults", "hydra")}
 
 
 #: The sections of TrainConfig that are one dataclass each; ``objective`` is the config dataclass of its weighting
@@ -630,17 +636,13 @@ def typed_config(config: Any) -> TrainConfig:
         return copy.deepcopy(config)
     if not isinstance(config, dict):
         raise ConfigError(f"expected a TrainConfig, a DictConfig or a dict, got {type(config).__name__}")
-    values = copy.deepcopy(config)
-    values.pop("defaults", None)
-    values.pop("hydra", None)
+    values = resolve_config(config)
     head = values.pop("policy", {})
     name = head.get("name")
-    if name not in POLICIES:
-        raise ConfigError(f"policy.name={name!r} is not valid; choose one of {list(POLICIES)}")
+    check_choice("policy.name", name, list(POLICIES))
     objective = values.pop("objective", {})
     weighting = objective.get("name", ObjectiveConfig.name)
-    if weighting not in WEIGHTINGS:
-        raise ConfigError(f"objective.name={weighting!r} is not valid; choose one of {list(WEIGHTINGS)}")
+    check_choice("objective.name", weighting, list(WEIGHTINGS))
     nodes = {key: _node(key, cls, values.pop(key, {})) for key, cls in SECTIONS.items()}
     nodes["objective"] = _node(f"objective {weighting!r}", objective_config(weighting), objective)
     nodes["policy"] = _node(f"policy {name!r}", POLICIES.get(name).config, head)

@@ -1,5 +1,5 @@
-"""The training job's settings checked before any work: the resolved config dict, :func:`validate` and its
-:class:`Job` (the typed config the builders and the loop read, and its evaluation).
+"""The training job's settings checked before any work: :func:`validate` and its :class:`Job` (the typed config the
+builders and the loop read, and its evaluation).
 
 Each section checks its own fields where it is defined (``TrainConfig.check``: the integer bounds beside the fields,
 the section's other rules in its ``check``); :func:`validate` adds the rules that span sections or need the suite,
@@ -7,7 +7,6 @@ the dataset or the built head and objective."""
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,27 +17,10 @@ from tar_rl.policies import POLICIES, DataInfo, Policy
 
 from . import diagnose, post_training
 from .builders import given_dataset, make_objective, make_policy, torch_device
-from .config import (
-    DEFAULT_TASKS,
-    ObjectiveConfig,
-    TrainConfig,
-    as_config_error,
-    check_choice,
-    check_int,
-    config_dict,
-    typed_config,
-)
+from .config import DEFAULT_TASKS, ObjectiveConfig, TrainConfig, as_config_error, check_choice, check_int, typed_config
 from .errors import ConfigError
 
-__all__ = ["Job", "check_slice_len", "resolve_config", "validate"]
-
-
-def resolve_config(cfg: Any) -> dict:
-    """A plain dict of the job's settings from a Hydra ``DictConfig``, a :class:`TrainConfig` or a dict (a copy, its
-    values unchecked)."""
-    if isinstance(cfg, dict):
-        return {key: copy.deepcopy(value) for key, value in cfg.items() if key not in ("defaults", "hydra")}
-    return config_dict(typed_config(cfg))
+__all__ = ["Job", "check_slice_len", "validate"]
 
 
 @dataclass(frozen=True)
@@ -75,7 +57,7 @@ def validate(config: Any) -> Job:
 
     Args:
         config: the job's settings: Hydra's resolved ``DictConfig``, a :class:`TrainConfig`, or a plain dict
-            (:func:`resolve_config`'s, or a run's saved config); it is not changed.
+            (``tar_rl.recipes.config.resolve_config``'s, or a run's saved config); it is not changed.
 
     Raises:
         ConfigError: naming the setting and the valid choices or range.
