@@ -206,7 +206,6 @@ def _config_field(f: dataclasses.Field) -> tuple[str, Any, Any]:
     return f.name, type(default), field(default=default)
 
 
-@functools.cache
 def objective_config(weighting: str) -> type:
     """The config dataclass of the registered weighting ``weighting``: :class:`ObjectiveConfig`'s settings, then
     its parameters' fields (``WEIGHTINGS[weighting].params``) with their defaults. One class per parameters
@@ -228,9 +227,7 @@ def _params_config(params: type) -> type:
 def _attributes(klass: type) -> str:
     """The ``Attributes:`` entries of ``klass``'s own docstring, indented as in a docstring ("" without any)."""
     doc = inspect.getdoc(klass) if "__doc__" in vars(klass) and klass.__doc__ else ""
-    if "Attributes:" not in doc:
-        return ""
-    entries = doc.split("Attributes:", 1)[1].split("\n\n")[0]
+    entries = doc.partition("Attributes:")[2].split("\n\n")[0]
     return "".join(f"{line}\n" for line in entries.splitlines() if line.strip())
 
 
@@ -433,10 +430,6 @@ class DiagnosticsConfig:
         _check_bounds(self, "diagnostics.")
 
 
-def _default_init() -> dict[str, str | None]:
-    return {"from": None}
-
-
 def _defaults() -> list[Any]:
     return [
         "_self_",
@@ -502,7 +495,7 @@ class TrainConfig:
     logging: LoggingConfig = MISSING
     diagnostics: DiagnosticsConfig = MISSING
     # A dict, not a dataclass: the key is the Python keyword ``from`` (``init.from=...``).
-    init: dict[str, str | None] = field(default_factory=_default_init)
+    init: dict[str, str | None] = field(default_factory=lambda: {"from": None})
     seed: int = bounded(0, 0)
     threads: int = bounded(1, 0)
     device: str = "auto"
