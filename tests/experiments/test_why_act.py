@@ -264,12 +264,22 @@ def test_the_committed_plans_are_the_ones_r6s_runs_started_with():
     planner = Planner(sizes.scale, cli.RESULTS / "regimes" / "r6", "datasets")
     arms = {"placement": ("uniform", "tar", "shuffle", "random", "invert")}
     arms["perturb"] = ("uniform", "tar", "perturb_high", "perturb_low")
+    # the tuning grid's first rates, uniform on the tuning evaluation seed, seeds 0 and 1
+    tune = ("eval.seed=2000", "objective=uniform")
     for stage, digest in started.items():
-        assert stage in arms, f"a test for the digest of {stage} is missing"
-        plan = {
-            arm: [SimpleNamespace(overrides=planner.overrides(*sizes.base, f"seed={seed}", f"objective={arm}"))
-                  for seed in range(8)]
-            for arm in arms[stage]
-        }  # fmt: skip
+        assert stage in (*arms, "tune"), f"a test for the digest of {stage} is missing"
+        if stage == "tune":
+            plan = {
+                f"lr={rate}": [SimpleNamespace(overrides=planner.overrides(*sizes.base, *tune, f"optim.lr={rate}",
+                                                                            f"seed={seed}"))
+                               for seed in (0, 1)]
+                for rate in ("0.0003", "0.001", "0.003")
+            }  # fmt: skip
+        else:
+            plan = {
+                arm: [SimpleNamespace(overrides=planner.overrides(*sizes.base, f"seed={seed}", f"objective={arm}"))
+                      for seed in range(8)]
+                for arm in arms[stage]
+            }  # fmt: skip
         assert plan_digest(plan) == digest, stage
     assert started["placement"] == "746c15c91d5ef103"  # recorded when its first run started, at 6dcbd3d
