@@ -29,7 +29,7 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.studies import regimes
-from benchmarks.studies.cli import RESULTS, tables_dir
+from benchmarks.studies.cli import RESULTS
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_frame, holm_into
 from benchmarks.studies.core import Arm, Grid, Planner, Spec
 from benchmarks.studies.protocol import BASELINE, TREATMENT
@@ -163,7 +163,7 @@ def table(ctx: Context) -> None:
         )
     md, tables = table_markdown([*base, *baselines], source, note)
     prov = provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
-    write_outputs(tables_dir(ctx), {"table.md": md}, tables, prov)
+    write_outputs(ctx.tables, {"table.md": md}, tables, prov)
     print(md)
 
 

@@ -111,13 +111,6 @@ def context(study: Study, argv: list[str]) -> Context:
     return Context(study, args, [study.name, *argv], sizes, scale, planner, out, jobs)
 
 
-def tables_dir(ctx: Context) -> Path:
-    """Where ``table`` writes: ``--tables`` when given, else the results folder (created)."""
-    dest = Path(ctx.args.tables) if ctx.args.tables else ctx.out
-    dest.mkdir(parents=True, exist_ok=True)
-    return dest
-
-
 def print_plan(ctx: Context) -> None:
     """Every stage's planned runs, finished or to run."""
     for stage, specs in plan(ctx).items():

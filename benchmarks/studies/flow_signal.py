@@ -49,7 +49,7 @@ from benchmarks.studies.cli import with_seeds
 from benchmarks.studies.compare import FINAL_SHARE, Comparison, check_pairs, contrasts, finished_runs, stage_fits
 from benchmarks.studies.core import Arm, Grid, Scale, Spec, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS
-from benchmarks.studies.records import read_json
+from benchmarks.studies.records import provenance, read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
@@ -487,11 +487,8 @@ STAGES = named(
 
 def table(ctx: Context) -> None:
     """R7's comparisons (:func:`write_tables`)."""
-    from benchmarks.studies.cli import tables_dir
-    from benchmarks.studies.records import provenance
-
     prov = provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
-    print(write_tables(ctx, prov, tables_dir(ctx), complete=ctx.args.complete))
+    print(write_tables(ctx, prov, ctx.tables, complete=ctx.args.complete))
 
 
 def _options(p: argparse.ArgumentParser) -> None:

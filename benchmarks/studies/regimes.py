@@ -31,7 +31,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.studies.cli import ints, tables_dir, with_seeds
+from benchmarks.studies.cli import ints, with_seeds
 from benchmarks.studies.core import Arm, Grid, Planner, Scale, Spec, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS, EIGHT_TASKS, PAIR, SOURCE_TASKS
 from benchmarks.studies.records import check_started, provenance, read_json
@@ -434,7 +434,7 @@ def planned(ctx: Context) -> Planned:
 def table(ctx: Context) -> None:
     """The decision table, per-group rows and Fig. 3 (:func:`.regimes_table.write_tables`)."""
     prov = provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
-    print(write_tables(planned(ctx), prov, tables_dir(ctx), complete=ctx.args.complete))
+    print(write_tables(planned(ctx), prov, ctx.tables, complete=ctx.args.complete))
 
 
 def _options(p: argparse.ArgumentParser) -> None:

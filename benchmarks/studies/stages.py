@@ -58,6 +58,13 @@ class Context:
         return self.out / "logs"
 
     @property
+    def tables(self) -> Path:
+        """Where ``table`` writes: ``--tables`` when given, else the results folder (created)."""
+        dest = Path(self.args.tables) if getattr(self.args, "tables", None) else self.out
+        dest.mkdir(parents=True, exist_ok=True)
+        return dest
+
+    @property
     def tree(self) -> Path | None:
         """The checkout whose code trains the runs (``--tree``, where the study has the option), checked."""
         return check_tree(getattr(self.args, "tree", None), self.study.name)

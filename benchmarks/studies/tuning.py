@@ -32,7 +32,7 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.studies import regimes
-from benchmarks.studies.cli import RESULTS, tables_dir
+from benchmarks.studies.cli import RESULTS
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_summary, holm_into, paired
 from benchmarks.studies.core import Arm, Grid, Scale, Spec, seed_major
 from benchmarks.studies.protocol import BASELINE
@@ -447,7 +447,7 @@ def table(ctx: Context) -> None:
         outputs.update(final_outputs(ctx, selected))
     texts = {f"{name}.md": md for name, (md, _) in outputs.items()}
     tables = {f"{name}.csv": df for name, (_, df) in outputs.items()}
-    write_outputs(tables_dir(ctx), texts, tables, provenance(ctx.scale, ctx.study.name, ctx.argv[1:]))
+    write_outputs(ctx.tables, texts, tables, provenance(ctx.scale, ctx.study.name, ctx.argv[1:]))
     for md in texts.values():
         print(md)
 

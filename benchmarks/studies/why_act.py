@@ -41,7 +41,7 @@ from benchmarks.studies.compare import (
     stage_fits,
 )
 from benchmarks.studies.core import Arm, Grid, Scale, Spec
-from benchmarks.studies.records import read_json
+from benchmarks.studies.records import provenance, read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
@@ -407,11 +407,8 @@ STAGES = named(
 
 def table(ctx: Context) -> None:
     """R6's comparisons (:func:`write_tables`)."""
-    from benchmarks.studies.cli import tables_dir
-    from benchmarks.studies.records import provenance
-
     prov = provenance(ctx.scale, ctx.study.name, ctx.argv[1:])
-    print(write_tables(ctx, prov, tables_dir(ctx), complete=ctx.args.complete))
+    print(write_tables(ctx, prov, ctx.tables, complete=ctx.args.complete))
 
 
 def _options(p: argparse.ArgumentParser) -> None:
