@@ -267,8 +267,15 @@ def test_the_committed_plans_are_the_ones_r6s_runs_started_with():
     # the tuning grid's first rates, uniform on the tuning evaluation seed, seeds 0 and 1
     tune = ("eval.seed=2000", "objective=uniform")
     for stage, digest in started.items():
-        assert stage in (*arms, "tune"), f"a test for the digest of {stage} is missing"
-        if stage == "tune":
+        assert stage in (*arms, "tune", "tuned"), f"a test for the digest of {stage} is missing"
+        if stage == "tuned":  # uniform and tar at the rate the tuning record selected (3e-3), seeds 0-7
+            plan = {
+                arm: [SimpleNamespace(overrides=planner.overrides(*sizes.base, "optim.lr=0.003", f"seed={seed}",
+                                                                  f"objective={arm}"))
+                      for seed in range(8)]
+                for arm in ("uniform", "tar")
+            }  # fmt: skip
+        elif stage == "tune":
             plan = {
                 f"lr={rate}": [SimpleNamespace(overrides=planner.overrides(*sizes.base, *tune, f"optim.lr={rate}",
                                                                             f"seed={seed}"))
@@ -283,3 +290,33 @@ def test_the_committed_plans_are_the_ones_r6s_runs_started_with():
             }  # fmt: skip
         assert plan_digest(plan) == digest, stage
     assert started["placement"] == "746c15c91d5ef103"  # recorded when its first run started, at 6dcbd3d
+    tuning = json.loads((cli.RESULTS / "regimes" / "r6" / "tuning.json").read_text())
+    assert tuning["best"] == 0.003 and tuning["train_pair"]  # 76.7 against 1e-3's 74.25 (the committed runs)
+
+
+def test_the_committed_tuning_record_recomputes_from_the_committed_tuning_runs():
+    """``regimes/r6/tuning.json``'s success per rate is the mean over seeds 0 and 1 of the share of successful final
+    rollouts (read here with pandas from each run's ``eval_rollouts.csv.gz``), and its outcome is the plan's rule
+    applied by hand: the best rate, and the tuned pair trained when it beats 1e-3 by >= 2 points."""
+    import pandas as pd
+    import yaml
+
+    r6 = cli.RESULTS / "regimes" / "r6"
+    record = json.loads((r6 / "tuning.json").read_text())
+    per_rate: dict[float, list[float]] = {}
+    for run in sorted((r6 / "runs").glob("uniform-act-s*")):
+        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        if cfg["eval"]["seed"] != 2000:
+            continue
+        rollouts = pd.read_csv(run / "eval_rollouts.csv.gz")
+        final = rollouts[rollouts["step"] == rollouts["step"].max()]
+        assert len(final) == 50 * 20 and cfg["seed"] in (0, 1)
+        per_rate.setdefault(cfg["optim"]["lr"], []).append(100 * final["success"].mean())
+    assert sorted(per_rate) == record["rates"] == [0.0003, 0.001, 0.003, 0.01]
+    for rate, values in per_rate.items():
+        assert len(values) == 2
+        assert record["success"][f"{rate:g}"] == pytest.approx(sum(values) / 2, abs=1e-9)
+    best = max(per_rate, key=lambda r: sum(per_rate[r]))
+    gain = (sum(per_rate[best]) - sum(per_rate[0.001])) / 2
+    assert record["best"] == best == 0.003
+    assert record["gain_over_reference"] == pytest.approx(gain) and record["train_pair"] == (gain >= 2)
