@@ -53,7 +53,7 @@ from benchmarks.studies.records import provenance, read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
-from benchmarks.studies.writers import comparison_lines, fmt_num, groups_and_fit_lines, write_outputs
+from benchmarks.studies.writers import comparison_lines, fmt_num, groups_and_fit_lines, pending_lines, write_outputs
 
 __all__ = [
     "CANDIDATES",
@@ -414,12 +414,7 @@ def decision_markdown(rows, groups: pd.DataFrame, fits, pilot: Sequence[dict], r
                 out.append(f"| {t} | {len(g)} | {per_seed} | {fmt_num(g['success'].mean(), 2)} |")
     if record is not None:
         out += ["", "## The selection", "", selection_text(record)]
-    pending = {k: v for k, v in missing.items() if v}
-    if pending:
-        out += ["", "## Not finished yet", ""]
-        out += [
-            f"- {k}: {len(v)} run(s) ({', '.join(v[:4])}{', ...' if len(v) > 4 else ''})" for k, v in pending.items()
-        ]
+    out += pending_lines(missing)
     return "\n".join(out) + "\n"
 
 

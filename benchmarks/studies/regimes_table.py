@@ -22,7 +22,7 @@ import pandas as pd
 from benchmarks.studies.compare import FINAL_SHARE, check_pairs, fit_means, fit_summary, holm_into
 from benchmarks.studies.core import Spec, seed_major
 from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
-from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, write_outputs
+from benchmarks.studies.writers import fit_markdown, fmt_num, fmt_p, pending_lines, write_outputs
 
 __all__ = [
     "PAIRED_FIGURE",
@@ -135,12 +135,7 @@ def decision_markdown(rows: Sequence[dict], groups: pd.DataFrame, missing: dict[
             f"| {g['regime']} | {g['level']} | {g['n_pairs']} | {fmt_num(g['baseline_mean'])} "
             f"| {fmt_num(g['objective_mean'])} | {fmt_num(g['delta_mean'], 2, True)} {ci} | {fmt_p(g['p_value'])} |"
         )
-    pending = {k: v for k, v in missing.items() if v}
-    if pending:
-        out += ["", "## Not finished yet", ""]
-        out += [
-            f"- {k}: {len(v)} run(s) ({', '.join(v[:4])}{', ...' if len(v) > 4 else ''})" for k, v in pending.items()
-        ]
+    out += pending_lines(missing)
     return "\n".join(out) + "\n"
 
 

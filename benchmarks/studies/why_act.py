@@ -46,7 +46,7 @@ from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
 from benchmarks.studies.sweep import execute
-from benchmarks.studies.writers import comparison_lines, fmt_num, groups_and_fit_lines, write_outputs
+from benchmarks.studies.writers import comparison_lines, fmt_num, groups_and_fit_lines, pending_lines, write_outputs
 
 __all__ = [
     "BASE_ARMS",
@@ -326,12 +326,7 @@ def decision_markdown(rows, groups: pd.DataFrame, fits, tune: Sequence[dict], re
                 f"{record['rule']}: "
                 + ("the tuned pair is trained." if record["train_pair"] else "no tuned pair is trained."),
             ]
-    pending = {k: v for k, v in missing.items() if v}
-    if pending:
-        out += ["", "## Not finished yet", ""]
-        out += [
-            f"- {k}: {len(v)} run(s) ({', '.join(v[:4])}{', ...' if len(v) > 4 else ''})" for k, v in pending.items()
-        ]
+    out += pending_lines(missing)
     return "\n".join(out) + "\n"
 
 

@@ -22,6 +22,7 @@ __all__ = [
     "fmt_p",
     "group_lines",
     "groups_and_fit_lines",
+    "pending_lines",
     "table_one_markdown",
     "write_outputs",
 ]
@@ -100,6 +101,20 @@ def groups_and_fit_lines(groups: pd.DataFrame, fits: Sequence[dict], final_share
             f"the last {final_share:.0%} of training steps (a uniform run's weights are all 1).",
         ]
     return out
+
+
+def pending_lines(missing: dict[str, Sequence[str]]) -> list[str]:
+    """A decision table's last section: per stage (or regime) with planned runs not finished, how many and the first
+    four names; nothing when every run is finished."""
+    pending = {k: v for k, v in missing.items() if v}
+    if not pending:
+        return []
+    return [
+        "",
+        "## Not finished yet",
+        "",
+        *(f"- {k}: {len(v)} run(s) ({', '.join(v[:4])}{', ...' if len(v) > 4 else ''})" for k, v in pending.items()),
+    ]
 
 
 def write_outputs(dest: Path, texts: dict[str, str], tables: dict[str, pd.DataFrame], prov: dict | None) -> None:

@@ -21,7 +21,7 @@ from run_helpers import ROLLOUTS, write_run
 
 from benchmarks.studies import cli, paper
 from benchmarks.studies.core import Planner, seed_major
-from benchmarks.studies.writers import controls_markdown, table_one_markdown
+from benchmarks.studies.writers import controls_markdown, pending_lines, table_one_markdown
 from tar_rl.report import PHASES, compare, expand_run_dirs, load_run, paired_t, paired_table, phase_labels
 from tar_rl.report.figures import (
     plot_critical_windows,
@@ -419,3 +419,15 @@ def test_scales_pair_objectives_and_paper_scale_is_the_papers_protocol(bench, tm
     assert c["optim"]["steps"] == 100_000 and c["eval"]["rollouts"] == 50 and c["eval"]["seed"] == 1000
     assert c["data"]["tasks"] == ["mt50"]
     assert c["objective"]["start"] == 0.2 and c["objective"]["ramp"] == 0.3
+
+
+def test_pending_lines_name_each_stage_with_runs_left_and_at_most_four_runs():
+    missing = {"placement": [], "perturb": ["a", "b", "c", "d", "e"], "tune": ["x"]}
+    assert pending_lines(missing) == [
+        "",
+        "## Not finished yet",
+        "",
+        "- perturb: 5 run(s) (a, b, c, d, ...)",
+        "- tune: 1 run(s) (x)",
+    ]
+    assert pending_lines({"placement": []}) == []
