@@ -11,7 +11,7 @@ from pathlib import Path
 
 from tar_rl.report import Run
 
-__all__ = ["Rebuilt", "checkpoint_parser", "read_checkpoint", "rebuild_final", "training_demos"]
+__all__ = ["Rebuilt", "checkpoint_parser", "matching_datasets", "read_checkpoint", "rebuild_final", "training_demos"]
 
 
 @dataclass
@@ -55,16 +55,34 @@ def read_checkpoint(path: Path, who: str) -> dict:
     return state
 
 
-def training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict, who: str):
+def matching_datasets(root: Path, wanted: dict, recorded: str | None, version: int) -> list[Path]:
+    """The dataset folders under ``root`` whose ``metadata.json`` has every setting of ``wanted``; where there are
+    several, those named as ``recorded`` (a run's recorded dataset path) if any, else those of format ``version``
+    if any, else all of them."""
+    found = {}
+    for meta_path in sorted(root.glob("*/metadata.json")):
+        metadata = json.loads(meta_path.read_text())
+        if all(metadata.get(k) == v for k, v in wanted.items()):
+            found[meta_path.parent] = metadata.get("format_version")
+    if len(found) <= 1:
+        return list(found)
+    named = [p for p in found if recorded is not None and p.name == Path(recorded).name]
+    return named or [p for p, v in found.items() if v == version] or list(found)
+
+
+def training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict, who: str, recorded: str | None = None):
     """The run's training dataset under ``root``, opened by :func:`tar_rl.data.load_dataset` (every check of a
     dataset; nothing written).
 
     The dataset is the folder whose metadata names the run's tasks, demonstrations per task, seed, chunk
-    horizon and history; its observation statistics must equal the checkpoint's (the data the policy was
-    trained on). A dataset of a format the package no longer reads is refused with how to build it again (the
-    scripted demonstrations of a seed are the same, which the statistics check confirms).
+    horizon and history. Where several folders have those settings (the same demonstrations collected by two
+    versions of the package, in two formats), the one of the name the run recorded (``recorded``: its summary's
+    ``data.path``) is taken, else the one of the format this package reads. Its observation statistics must equal
+    the checkpoint's (the data the policy was trained on). A dataset of a format the package no longer reads is
+    refused with how to build it again (the scripted demonstrations of a seed are the same, which the statistics
+    check confirms).
     """
-    from tar_rl.data import DatasetError, load_dataset
+    from tar_rl.data import FORMAT_VERSION, DatasetError, load_dataset
 
     wanted = {
         "tasks": list(tasks),
@@ -73,11 +91,7 @@ def training_demos(root: Path, cfg, tasks: tuple[str, ...], info: dict, who: str
         "chunk_horizon": cfg.data.chunk_horizon,
         "history": cfg.data.history,
     }
-    found = []
-    for meta_path in sorted(root.glob("*/metadata.json")):
-        metadata = json.loads(meta_path.read_text())
-        if all(metadata.get(k) == v for k, v in wanted.items()):
-            found.append(meta_path.parent)
+    found = matching_datasets(root, wanted, recorded, FORMAT_VERSION)
     if len(found) != 1:
         raise SystemExit(
             f"{who}: {len(found)} datasets under {root} have the settings {wanted} (one is needed); "
@@ -128,9 +142,11 @@ def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Re
     objective = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
     objective.load_state_dict(state["objective"])
     root = Path(data_root or cfg.data.root)
-    if root not in demos:
-        demos[root] = training_demos(root, cfg, job.train_tasks, state["data_info"], who)
-    episodes = demo_episodes(demos[root], job.train_tasks, cfg.logging.record_episodes, policy.keys, "cpu")
+    recorded = run.summary.get("data", {}).get("path")
+    key = (root, cfg.data.n_demos, cfg.data.seed, cfg.data.chunk_horizon, cfg.data.history, job.train_tasks, recorded)
+    if key not in demos:
+        demos[key] = training_demos(root, cfg, job.train_tasks, state["data_info"], who, recorded)
+    episodes = demo_episodes(demos[key], job.train_tasks, cfg.logging.record_episodes, policy.keys, "cpu")
     return Rebuilt(objective, cfg, episodes, policy)
 
 

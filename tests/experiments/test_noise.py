@@ -305,3 +305,22 @@ def test_a_signal_the_head_does_not_offer_is_refused_naming_the_head_and_its_sig
         noise.noise_table(tiny_runs, signals=["velocity"], names=[_named(tiny_runs, "uniform-flow", 0)])
     with pytest.raises(SystemExit, match=r"absent-run: not a trained uniform run"):
         noise.noise_table(tiny_runs, names=["absent-run"])
+
+
+def test_the_training_dataset_is_picked_by_the_runs_recorded_name_then_by_format(tmp_path):
+    """Two folders with a run's settings (the same demonstrations collected by two versions of the package):
+    the one the run recorded, else the readable format's; a folder of other settings is never a candidate."""
+    import json
+
+    from benchmarks.analysis.rebuild import matching_datasets
+
+    wanted = {"tasks": ["reach-v3"], "n_demos": 5, "seed": 0, "chunk_horizon": 8, "history": 2}
+    for name, version, n_demos in (("old", 3, 5), ("new", 4, 5), ("newer", 4, 5), ("other", 4, 9)):
+        (tmp_path / name).mkdir()
+        meta = {**wanted, "n_demos": n_demos, "format_version": version}
+        (tmp_path / name / "metadata.json").write_text(json.dumps(meta))
+    assert matching_datasets(tmp_path, wanted, "/elsewhere/old", 4) == [tmp_path / "old"]
+    assert matching_datasets(tmp_path, wanted, None, 4) == [tmp_path / "new", tmp_path / "newer"]
+    assert matching_datasets(tmp_path, wanted, "/elsewhere/gone", 3) == [tmp_path / "old"]
+    assert matching_datasets(tmp_path, {**wanted, "n_demos": 9}, None, 3) == [tmp_path / "other"]
+    assert matching_datasets(tmp_path, {**wanted, "seed": 1}, None, 4) == []
