@@ -36,9 +36,12 @@ def reads_weights(rel: str, config: dict) -> bool:
     the R3 diagnosis (``python -m benchmarks.analysis diagnosis``) reads every R3 run (the MLP on MT50, 50
     demonstrations, 3,743 steps: uniform and tar, every seed); R4 and R5 (the ``act`` and ``flow`` heads) keep
     seed 0 of each arm, whose weights ``tar-rl report`` draws; R6 (``regimes/r6``) keeps seed 0 of each control
-    (its uniform and tar of seed 0 are R4's)."""
+    (its uniform and tar of seed 0 are R4's); R7 (``regimes/r7``) keeps seed 0 of each arm of its comparison (on
+    evaluation seed 1000; its pilot's uniform runs, on the tuning seed 2000, keep none)."""
     if rel.startswith("regimes/r6/runs/"):
         return config["seed"] == 0 and config["objective"]["name"] not in ("uniform", "tar")
+    if rel.startswith("regimes/r7/runs/"):
+        return config["seed"] == 0 and config["eval"]["seed"] == 1000
     if not rel.startswith("regimes/runs/"):
         return False
     head = config["policy"]["name"]
