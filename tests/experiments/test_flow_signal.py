@@ -2,7 +2,8 @@
 numbers (ties, the 1-point eligibility of per-segment times, candidate (a) planning no R7 run), the plans against
 R5's, the stages at the ci scale through the table (the noise analysis as a command, here or in a ``--tree``; the
 selection from the committed table; the comparisons, Holm and the per-seed differences against hand-computed
-values), and the refusals."""
+values), the refusals, and the committed records (the plans' digests composed by hand; the selection recomputed from
+the committed pilot)."""
 
 from __future__ import annotations
 
@@ -356,3 +357,77 @@ def test_refusals_before_the_pilot_and_the_selection(tmp_path):
         main(["table", "--complete", "--scale", "ci", "--out", str(tmp_path / "r7")])
     with pytest.raises(SystemExit, match=r"not a checkout of tar-rl with its own \.venv"):
         main(["run", "pilot", *args, "--tree", str(tmp_path)])
+
+
+# -- The committed records ---------------------------------------------------------------------------------
+
+R7 = cli.RESULTS / "regimes" / "r7"
+#: R5's overrides as the harness printed them (the scale's shared ones first), written out by hand.
+R5_BASE = [
+    *("logging=quiet", "logging.record_episodes=3", "threads=1"),
+    *("policy=flow", "data.tasks=[mt50]", "data.n_demos=50", "data.seed=0", "optim.steps=3743"),
+    *("eval.rollouts=20", "eval.seed=1000", "logging.record_weights_at=[1872,-1]", "policy.compile=true"),
+]
+
+
+def test_the_committed_plans_are_the_ones_r7s_runs_started_with():
+    """``regimes/r7/started.json`` holds the digest of each stage's overrides (the machine's folders left out),
+    composed here by hand: the pilot's uniform per time sampling on the tuning seed, seeds 0 and 1; R7's three arms
+    with the selected signal, seeds 0-7, each seed's arms in order."""
+
+    def digest(plan: dict) -> str:
+        return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()[:16]
+
+    started = json.loads((R7 / "started.json").read_text())
+    tune = ["eval.seed=2000", "objective=uniform"]
+    pilot = {
+        t: [[*R5_BASE, *tune, f"seed={s}", f"policy.time_sampling={t}"] for s in (0, 1)] for t in ("step", "segment")
+    }
+    r7 = {
+        arm: [[*R5_BASE, f"seed={s}", f"objective={arm}", "objective.signal=action_error"] for s in range(8)]
+        for arm in ("uniform", "tar", "tar_gentle")
+    }
+    assert set(started) <= {"pilot", "r7"}
+    assert started["pilot"] == digest(pilot) == "886298723889e9cb"  # recorded when the pilot started, at 511a8f1
+    if "r7" in started:
+        assert started["r7"] == digest(r7)
+
+
+def test_the_committed_selection_recomputes_from_the_committed_pilot():
+    """``regimes/r7/selection.json`` is the plan's rule applied by hand to the committed noise table (read with
+    pandas) and to uniform's success on the tuning seed (the share of successful final rollouts of each pilot run's
+    ``eval_rollouts.csv.gz``), and it names the table by its SHA-256."""
+    import yaml
+
+    record = json.loads((R7 / "selection.json").read_text())
+    table = pd.read_csv(R7 / "pilot_noise.csv")
+    assert hashlib.sha256((R7 / "pilot_noise.csv").read_bytes()).hexdigest() == record["table_sha256"]
+    flow = table[(table["head"] == "flow") & (table["draws"] == 1)]
+    order = {"a": ("step", "loss"), "b": ("step", "action_error"), "c": ("step", "time_normalized")}
+    order["d"] = ("segment", "loss")
+    weight_r = {}
+    for key, (times, signal) in order.items():
+        rows = flow[(flow["time_sampling"] == times) & (flow["signal"] == signal)]
+        assert sorted(rows["seed"]) == [0, 1], key
+        weight_r[key] = rows["weight_r_tar"].mean()
+        assert record["means"][key]["weight_r_tar"] == pytest.approx(weight_r[key], abs=1e-9)
+    success: dict[str, list[float]] = {"step": [], "segment": []}
+    for run in sorted((R7 / "runs").glob("uniform-flow-s*")):
+        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        if cfg["eval"]["seed"] != 2000:
+            continue
+        rollouts = pd.read_csv(run / "eval_rollouts.csv.gz")
+        final = rollouts[rollouts["step"] == rollouts["step"].max()]
+        assert len(final) == 50 * 20 and cfg["seed"] in (0, 1)
+        success[cfg["policy"]["time_sampling"]].append(100 * final["success"].mean())
+    assert [len(v) for v in success.values()] == [2, 2]
+    step, segment = (sum(v) / 2 for v in success.values())
+    assert record["success"]["mean"] == pytest.approx({"step": step, "segment": segment}, abs=1e-9)
+    # the rule by hand: (d) only within 1 point of step times; the highest; a tie within 0.02 to the first in order
+    eligible = [k for k in "abcd" if k != "d" or segment >= step - 1]
+    highest = max(weight_r[k] for k in eligible)
+    chosen = next(k for k in eligible if weight_r[k] >= highest - 0.02)
+    assert (record["candidate"], record["segment_eligible"]) == (chosen, segment >= step - 1)
+    assert (record["signal"], record["time_sampling"], record["train_r7"]) == (*order[chosen][::-1], chosen != "a")
+    # what the committed numbers give: step 78.2, segment 74.55, so (d) is out and (b) is highest at 0.466
+    assert (chosen, round(step, 2), round(segment, 2)) == ("b", 78.2, 74.55)
