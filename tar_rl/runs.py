@@ -200,8 +200,10 @@ def portable_config(config: dict, root: str | Path) -> dict:
 
 def portable_summary(summary: dict, root: str | Path) -> dict:
     """A copy of a run's summary (:data:`SUMMARY_FILE`) with the paths it records written relative to the
-    repository ``root``: its config's (:func:`portable_config`) and a post-training run's source checkpoint
-    (``init.from``, by the same rule as the config's).
+    repository ``root``: its config's (:func:`portable_config`), a post-training run's source checkpoint
+    (``init.from``, by the same rule as the config's) and the training dataset's folder (``data.path``: the
+    folder of the cache ``data.root`` when the config names no dataset folder of its own, written under that
+    setting's portable form; a folder the config names, by :func:`portable_path`).
 
     Raises:
         ValueError: one of them cannot be placed, naming the setting.
@@ -209,11 +211,22 @@ def portable_summary(summary: dict, root: str | Path) -> dict:
     summary = copy.deepcopy(summary)
     config = summary.get("config")
     runs_root = config.get("runs_root") if isinstance(config, dict) else None
+    data_cfg = (config.get("data") or {}) if isinstance(config, dict) else {}
     if isinstance(config, dict):
         summary["config"] = portable_config(config, root)
     init = summary.get("init")
     if isinstance(init, dict) and isinstance(init.get("from"), str) and init["from"]:
         init["from"] = _portable_setting(("init", "from"), init["from"], root, runs_root)
+    data = summary.get("data")
+    if isinstance(data, dict) and isinstance(data.get("path"), str) and data["path"]:
+        if not data_cfg.get("path") and isinstance(data_cfg.get("root"), str) and data_cfg["root"]:
+            folder = _portable_setting(("data", "root"), data_cfg["root"], root, runs_root)
+            data["path"] = (Path(folder) / Path(data["path"]).name).as_posix()
+        else:
+            try:
+                data["path"] = portable_path(data["path"], root)
+            except ValueError as err:
+                raise ValueError(f"data.path: {err}") from None
     return summary
 
 

@@ -100,3 +100,22 @@ def test_a_summary_names_its_config_and_source_checkpoint_relative(root):
     config = _config(runs_root="/elsewhere/sweep")
     summary = {"init": {"from": "/elsewhere/sweep/src/checkpoint.pt"}, "config": config}  # no checkout folder
     assert portable_summary(summary, root)["init"]["from"] == "runs/src/checkpoint.pt"
+
+
+def test_a_summary_names_its_training_dataset_under_its_portable_data_root(root):
+    config = _config(data__root="/elsewhere/exp/data", runs_root="/elsewhere/exp/r7/runs")  # "data" is no checkout folder
+    summary = {"config": config, "data": {"path": "/elsewhere/exp/data/metaworld-demos-a0", "digest": "sha256:ab"}}
+    portable = portable_summary(summary, root)
+    assert portable["data"] == {"path": "datasets/metaworld-demos-a0", "digest": "sha256:ab"}
+    assert summary["data"]["path"] == "/elsewhere/exp/data/metaworld-demos-a0"  # the summary given is not changed
+    # a tracked copy whose config is portable already: the same folder under the same name
+    assert portable_summary(portable, root) == portable
+    # a dataset folder the config names itself is written by portable_path's rule
+    config = _config(data__root="/elsewhere/datasets", data__path="/elsewhere/demos/lerobot-set")
+    outside = {"config": config, "data": {"path": "/elsewhere/demos/lerobot-set"}}  # no checkout folder in it
+    with pytest.raises(ValueError, match=r"^data\.path: /elsewhere/demos/lerobot-set lies outside"):
+        portable_summary(outside, root)
+    config = _config(data__root="/elsewhere/datasets", data__path="/elsewhere/x/datasets/other")
+    inside = {"config": config, "data": {"path": "/elsewhere/x/datasets/other"}}
+    assert portable_summary(inside, root)["data"]["path"] == "datasets/other"
+    assert portable_summary({"config": config, "data": {"path": None}}, root)["data"] == {"path": None}
