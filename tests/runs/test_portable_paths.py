@@ -103,7 +103,8 @@ def test_a_summary_names_its_config_and_source_checkpoint_relative(root):
 
 
 def test_a_summary_names_its_training_dataset_under_its_portable_data_root(root):
-    config = _config(data__root="/elsewhere/exp/data", runs_root="/elsewhere/exp/r7/runs")  # "data" is no checkout folder
+    # "data", the folder of the cache here, is no checkout folder
+    config = _config(data__root="/elsewhere/exp/data", runs_root="/elsewhere/exp/r7/runs")
     summary = {"config": config, "data": {"path": "/elsewhere/exp/data/metaworld-demos-a0", "digest": "sha256:ab"}}
     portable = portable_summary(summary, root)
     assert portable["data"] == {"path": "datasets/metaworld-demos-a0", "digest": "sha256:ab"}
