@@ -238,6 +238,15 @@ def test_the_plan_matches_r4_and_the_act_head():
         assert f"--policy.{option}={value} " in act and f"--policy.{option}={value} " in act_tar
     assert all("--steps=3743 " in line and "--seed=0 " in line for line in (act, act_tar))
     assert lines[-1].endswith("--tasks mt50 --rollouts 20 --seed 1000 --out pilot/eval/act_tar-seed0")
+    # saved every 250 steps, and each run resumed from the last checkpoint under its own output folder
+    assert all("--save_freq=250 " in line for line in (act, act_tar))
+    resume = lerobot_pilot.resume_commands(seed=0, root="pilot")
+    for line, arm in zip(resume, ("act", "act_tar"), strict=True):
+        assert f"--output_dir=pilot/runs/{arm}-seed0" in (act if arm == "act" else act_tar)
+        assert line == (
+            ".venv-lerobot/bin/lerobot-train --config_path="
+            f"pilot/runs/{arm}-seed0/checkpoints/last/pretrained_model/train_config.json --resume=true"
+        )
 
 
 @needs_plugin
