@@ -112,11 +112,12 @@ def test_every_committed_run_keeps_its_weight_statistics(runs):
 
 
 def test_the_reading_rule_matches_a_hand_count():
-    """R3's 8 pairs, R4's seed 0 and R5's seed 0 (three arms each) and R6's seed-0 controls committed so far:
-    the runs whose weights an analysis reads."""
+    """R3's 8 pairs, R4's seed 0 and R5's seed 0 (three arms each), R6's seed-0 controls and R7's seed-0 arms
+    committed so far: the runs whose weights an analysis reads."""
     configs = {rel: yaml.safe_load((p / "config.yaml").read_text()) for rel, p in committed_runs().items()}
     read = sorted(rel.rsplit("/", 1)[1].rsplit("-", 1)[0] for rel, c in configs.items() if reads_weights(rel, c))
     r3 = sorted(f"{objective}-mlp-s{seed}" for objective in ("tar", "uniform") for seed in range(8))
     r4_r5 = ["tar-act-s0", "tar-act-s0", "uniform-act-s0", "tar-flow-s0", "tar-flow-s0", "uniform-flow-s0"]
     r6 = ["invert-act-s0", "random-act-s0", "shuffle-act-s0"]  # R6's seed-0 controls
-    assert read == sorted([*r3, *r4_r5, *r6])
+    r7 = ["tar-flow-s0", "uniform-flow-s0"]  # R7's seed-0 arms committed so far
+    assert read == sorted([*r3, *r4_r5, *r6, *r7])

@@ -431,3 +431,30 @@ def test_the_committed_selection_recomputes_from_the_committed_pilot():
     assert (record["signal"], record["time_sampling"], record["train_r7"]) == (*order[chosen][::-1], chosen != "a")
     # what the committed numbers give: step 78.2, segment 74.55, so (d) is out and (b) is highest at 0.466
     assert (chosen, round(step, 2), round(segment, 2)) == ("b", 78.2, 74.55)
+
+
+def test_r7s_committed_uniform_runs_repeat_r5s_rollouts():
+    """R7's uniform runs (``objective.signal=action_error``, which uniform does not read, at 511a8f1 on a format-4
+    copy of R4's demonstrations) roll out exactly as R5's uniform runs of the same seed (at 2a4022e, on the format-3
+    folder): every final rollout's task, variation, success, steps and rho equal, returns equal to 1e-9."""
+    import yaml
+
+    r5 = cli.RESULTS / "regimes" / "runs"
+    compared = 0
+    for run in sorted((R7 / "runs").glob("uniform-flow-s*")):
+        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        if cfg["eval"]["seed"] != 1000:  # the pilot's runs, on the tuning seed, have no R5 counterpart
+            continue
+        (twin,) = [
+            p
+            for p in r5.glob(f"uniform-flow-s{cfg['seed']}-*")
+            if yaml.safe_load((p / "config.yaml").read_text())["data"]["n_demos"] == 50
+        ]
+        a, b = (pd.read_csv(p / "eval_rollouts.csv.gz") for p in (run, twin))
+        a, b = (f[f["step"] == f["step"].max()].reset_index(drop=True) for f in (a, b))
+        assert len(a) == len(b) == 1000, run.name
+        for column in ("task", "variation_seed", "variation_index", "success", "steps", "rho"):
+            assert a[column].equals(b[column]), (run.name, column)
+        assert (a["return"] - b["return"]).abs().max() < 1e-9, run.name
+        compared += 1
+    assert compared >= 1
