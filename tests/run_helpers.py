@@ -1,4 +1,5 @@
-"""Synthetic run directories with hand-chosen rollouts, shared by the report and experiment tests.
+"""Synthetic run directories with hand-chosen rollouts, shared by the report and experiment tests, and the final
+rollouts of a committed run read with pandas alone.
 
 The run directories are written file by file, per the recipe's run-directory format; every expected
 number is worked out by hand in the comments.
@@ -120,3 +121,14 @@ def write_run(
         }
         (path / "summary.json").write_text(json.dumps(summary))
     return path
+
+
+def committed_run(run_dir) -> tuple[dict, pd.DataFrame]:
+    """A committed run's config (``config.yaml``) and final evaluation: the rows of ``eval_rollouts.csv.gz`` at its
+    largest training step, read with yaml and pandas (none of tar-rl's readers)."""
+    from pathlib import Path
+
+    run_dir = Path(run_dir)
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    rollouts = pd.read_csv(run_dir / "eval_rollouts.csv.gz")
+    return config, rollouts[rollouts["step"] == rollouts["step"].max()].reset_index(drop=True)

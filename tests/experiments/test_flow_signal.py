@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from run_helpers import committed_run
 
 from benchmarks.studies import cli, flow_signal
 from benchmarks.studies.flow_signal import select_candidate
@@ -397,8 +398,6 @@ def test_the_committed_selection_recomputes_from_the_committed_pilot():
     """``regimes/r7/selection.json`` is the plan's rule applied by hand to the committed noise table (read with
     pandas) and to uniform's success on the tuning seed (the share of successful final rollouts of each pilot run's
     ``eval_rollouts.csv.gz``), and it names the table by its SHA-256."""
-    import yaml
-
     record = json.loads((R7 / "selection.json").read_text())
     table = pd.read_csv(R7 / "pilot_noise.csv")
     assert hashlib.sha256((R7 / "pilot_noise.csv").read_bytes()).hexdigest() == record["table_sha256"]
@@ -413,11 +412,9 @@ def test_the_committed_selection_recomputes_from_the_committed_pilot():
         assert record["means"][key]["weight_r_tar"] == pytest.approx(weight_r[key], abs=1e-9)
     success: dict[str, list[float]] = {"step": [], "segment": []}
     for run in sorted((R7 / "runs").glob("uniform-flow-s*")):
-        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        cfg, final = committed_run(run)
         if cfg["eval"]["seed"] != 2000:
             continue
-        rollouts = pd.read_csv(run / "eval_rollouts.csv.gz")
-        final = rollouts[rollouts["step"] == rollouts["step"].max()]
         assert len(final) == 50 * 20 and cfg["seed"] in (0, 1)
         success[cfg["policy"]["time_sampling"]].append(100 * final["success"].mean())
     assert [len(v) for v in success.values()] == [2, 2]
@@ -437,21 +434,14 @@ def test_r7s_committed_uniform_runs_repeat_r5s_rollouts():
     """R7's uniform runs (``objective.signal=action_error``, which uniform does not read, at 511a8f1 on a format-4
     copy of R4's demonstrations) roll out exactly as R5's uniform runs of the same seed (at 2a4022e, on the format-3
     folder): every final rollout's task, variation, success, steps and rho equal, returns equal to 1e-9."""
-    import yaml
-
     r5 = cli.RESULTS / "regimes" / "runs"
     compared = 0
     for run in sorted((R7 / "runs").glob("uniform-flow-s*")):
-        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        cfg, a = committed_run(run)
         if cfg["eval"]["seed"] != 1000:  # the pilot's runs, on the tuning seed, have no R5 counterpart
             continue
-        (twin,) = [
-            p
-            for p in r5.glob(f"uniform-flow-s{cfg['seed']}-*")
-            if yaml.safe_load((p / "config.yaml").read_text())["data"]["n_demos"] == 50
-        ]
-        a, b = (pd.read_csv(p / "eval_rollouts.csv.gz") for p in (run, twin))
-        a, b = (f[f["step"] == f["step"].max()].reset_index(drop=True) for f in (a, b))
+        (twin,) = [p for p in r5.glob(f"uniform-flow-s{cfg['seed']}-*") if committed_run(p)[0]["data"]["n_demos"] == 50]
+        b = committed_run(twin)[1]
         assert len(a) == len(b) == 1000, run.name
         for column in ("task", "variation_seed", "variation_index", "success", "steps", "rho"):
             assert a[column].equals(b[column]), (run.name, column)

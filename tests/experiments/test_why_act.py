@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from run_helpers import committed_run
 
 from benchmarks.studies import cli, compare, why_act
 from benchmarks.studies.stages import stage_arms
@@ -298,18 +299,13 @@ def test_the_committed_tuning_record_recomputes_from_the_committed_tuning_runs()
     """``regimes/r6/tuning.json``'s success per rate is the mean over seeds 0 and 1 of the share of successful final
     rollouts (read here with pandas from each run's ``eval_rollouts.csv.gz``), and its outcome is the plan's rule
     applied by hand: the best rate, and the tuned pair trained when it beats 1e-3 by >= 2 points."""
-    import pandas as pd
-    import yaml
-
     r6 = cli.RESULTS / "regimes" / "r6"
     record = json.loads((r6 / "tuning.json").read_text())
     per_rate: dict[float, list[float]] = {}
     for run in sorted((r6 / "runs").glob("uniform-act-s*")):
-        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        cfg, final = committed_run(run)
         if cfg["eval"]["seed"] != 2000:
             continue
-        rollouts = pd.read_csv(run / "eval_rollouts.csv.gz")
-        final = rollouts[rollouts["step"] == rollouts["step"].max()]
         assert len(final) == 50 * 20 and cfg["seed"] in (0, 1)
         per_rate.setdefault(cfg["optim"]["lr"], []).append(100 * final["success"].mean())
     assert sorted(per_rate) == record["rates"] == [0.0003, 0.001, 0.003, 0.01]
