@@ -142,7 +142,7 @@ def rebuild_final(run: Run, data_root: Path | None, demos: dict, who: str) -> Re
     objective = make_objective(cfg.objective, cfg.optim.steps, cfg.seed, policy)
     objective.load_state_dict(state["objective"])
     root = Path(data_root or cfg.data.root)
-    recorded = run.summary.get("data", {}).get("path")
+    recorded = (run.summary.get("data") or {}).get("path")
     key = (root, cfg.data.n_demos, cfg.data.seed, cfg.data.chunk_horizon, cfg.data.history, job.train_tasks, recorded)
     if key not in demos:
         demos[key] = training_demos(root, cfg, job.train_tasks, state["data_info"], who, recorded)
