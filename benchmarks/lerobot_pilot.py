@@ -259,6 +259,8 @@ TAR_START, TAR_RAMP = round(0.2 * R4_STEPS), round(0.3 * R4_STEPS)  # tar-rl's o
 #: Steps between checkpoints: a run takes longer than a working session here (3 to 6.4 s a step), so it is saved
 #: every 15 to 27 minutes and resumed from its last checkpoint (:func:`resume_commands`).
 SAVE_EVERY = 250
+#: The pair's two runs, in the order they train.
+ARMS = ("act", "act_tar")
 #: tar-rl's ``act`` head at its defaults in LeRobot's ACT's names: width 64, 2 heads, one layer each, FFN 128,
 #: latent 16, pre-norm layers, no dropout, KL weight 10, chunks of data.chunk_horizon = 8, temporal ensembling; the
 #: whole observation standardised (``policy.normalize_obs``: LeRobot's ACT leaves the environment state as it is).
@@ -314,11 +316,11 @@ def resume_commands(seed: int = 0, root: str = "pilot") -> list[str]:
     return [
         ".venv-lerobot/bin/lerobot-train "
         f"--config_path={root}/runs/{arm}-seed{seed}/checkpoints/last/pretrained_model/train_config.json --resume=true"
-        for arm in ("act", "act_tar")
+        for arm in ARMS
     ]
 
 
-COST = """\
+COST = f"""\
 Cost on this machine (2 CPU cores): one pair's training, measured from 15 timed steps of each run at this size
 (3 to 6.4 s a step), is 7.5 to 10.5 hours; each evaluation (MT50, 20 rollouts per task, at most 500 steps each)
 takes at most about 35 minutes on two workers (8 ms per environment step measured through the server), recorded
@@ -326,11 +328,11 @@ as final_eval_seconds in its summary.json. A pre-registered study of 8 pairs (se
 hours of training and at most about 9 hours of evaluation on this machine, one run at a time. One pair reports two
 success rates; it supports no conclusion about TAR.
 
-A run (3 to 7 hours) outlasts a working session here: it saves a checkpoint every 250 steps, and a run that stopped
-continues from its last one with the lines above. LeRobot's resume continues the run's data order, but its random
-draws afterwards differ from an uninterrupted run's (6-step runs resumed at step 4 gave step-5 losses of 28.47 for
-`act` and 29.84 for `act_tar`, against 29.10 and 29.65 uninterrupted), so a resumed run is not bit-identical to one
-that ran through: the pair records where each run resumed (its checkpoints' steps)."""
+A run (3 to 7 hours) outlasts a working session here: it saves a checkpoint every {SAVE_EVERY} steps, and a run
+that stopped continues from its last one with the lines above. LeRobot's resume continues the run's data order,
+but its random draws afterwards differ from an uninterrupted run's (6-step runs resumed at step 4 gave step-5 losses
+of 28.47 for `act` and 29.84 for `act_tar`, against 29.10 and 29.65 uninterrupted), so a resumed run is not
+bit-identical to one that ran through: the pair records where each run resumed (its checkpoints' steps)."""
 
 
 def _plan(args) -> int:
