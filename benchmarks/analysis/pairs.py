@@ -18,7 +18,7 @@ from pathlib import Path
 import yaml
 
 from benchmarks.studies.compare import check_pairs
-from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT
+from benchmarks.studies.protocol import BASELINE, CHUNKED_ARMS, TREATMENT, arm_of
 from benchmarks.studies.regimes import SIZES
 from tar_rl.report import Run, load_run
 
@@ -29,7 +29,6 @@ __all__ = [
     "WINDOW",
     "Pairs",
     "Regime",
-    "arm_of",
     "load_pairs",
     "r3_settings",
     "regime",
@@ -110,19 +109,6 @@ def _get(config: dict, dotted: str):
     for key in dotted.split("."):
         node = node.get(key) if isinstance(node, dict) else None
     return node
-
-
-def arm_of(config: dict) -> str:
-    """A run's arm from its config: the objective's name, ``tar_gentle`` for a ``tar`` run with the preset's gamma,
-    cap and w_max (its ``objective.name`` is ``tar``)."""
-    from tar_rl.recipes.config import OBJECTIVE_PRESETS
-
-    objective = config.get("objective") or {}
-    gentle = OBJECTIVE_PRESETS["tar_gentle"]
-    keys = ("gamma", "cap", "w_max")
-    if objective.get("name") == gentle.name and all(objective.get(k) == getattr(gentle, k) for k in keys):
-        return "tar_gentle"
-    return str(objective.get("name"))
 
 
 @dataclass

@@ -27,8 +27,9 @@ refused by ``run`` and ``table``. ``--tree DIR`` trains the runs with another ch
 worktree), and runs ``select``'s noise analysis there. ``table`` writes each TAR arm minus uniform over its paired
 seeds (a pair trained at different commits, on different machines or devices is refused, naming the runs): mean, 95%
 CI, p, Holm over the two, MDE, pairs higher, per group; the arms' fit and weights, the pilot and the selection, and
-the per-seed differences (``paired.csv``, which the regime study's paired figure reads); with ``--complete`` a stage
-with a run of its plan missing is refused.
+the per-seed differences (``paired.csv``, which the regime study's paired figure reads), and, exploratory, each R7
+TAR arm minus R5's of the same seed over the seeds whose uniform runs roll out alike (``signal_alone.csv``: the
+effect of the signal alone); with ``--complete`` a stage with a run of its plan missing is refused.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.studies import sweep
-from benchmarks.studies.cli import with_seeds
+from benchmarks.studies.cli import RESULTS, with_seeds
 from benchmarks.studies.compare import FINAL_SHARE, Comparison, check_pairs, contrasts, finished_runs, stage_fits
 from benchmarks.studies.core import Arm, Grid, Scale, Spec, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS
@@ -53,7 +54,14 @@ from benchmarks.studies.records import provenance, read_json
 from benchmarks.studies.regimes import SIZES as REGIME_SIZES
 from benchmarks.studies.regimes import chunked_base
 from benchmarks.studies.stages import Context, Digest, Gate, Stage, Study, named, stage_arms
-from benchmarks.studies.writers import comparison_lines, fmt_num, groups_and_fit_lines, pending_lines, write_outputs
+from benchmarks.studies.writers import (
+    comparison_lines,
+    fmt_num,
+    fmt_p,
+    groups_and_fit_lines,
+    pending_lines,
+    write_outputs,
+)
 
 __all__ = [
     "CANDIDATES",
@@ -379,6 +387,113 @@ def paired_rows(r7: dict[str, dict[int, object]]) -> list[dict]:
     ]
 
 
+#: The regime study's committed runs, R5's among them.
+R5_RUNS = RESULTS / "regimes" / "runs"
+#: What makes a committed run one of R5's, beside its arm (:func:`.protocol.arm_of`) and seed: R7's uniform at R5's
+#: settings agrees with it on each (dotted config keys).
+R5_KEYS = ("policy.name", "data.tasks", "data.n_demos", "data.seed", "optim.steps", "eval.seed", "eval.rollouts")
+#: The columns two runs' final rollouts must agree on, row by row, to count as the same rollouts.
+SAME_ROLLOUTS = ("task", "variation_seed", "variation_index", "success", "steps")
+
+
+def _dotted(config: dict, key: str):
+    for part in key.split("."):
+        config = config.get(part) if isinstance(config, dict) else None
+    return config
+
+
+def final_rollouts(run_dir: Path) -> pd.DataFrame:
+    """A run's final evaluation: its ``eval_rollouts.csv`` (or ``.csv.gz``) rows at the largest training step."""
+    from tar_rl.report.load import run_file
+
+    rows = pd.read_csv(run_file(run_dir, "eval_rollouts.csv"))
+    return rows[rows["step"] == rows["step"].max()].reset_index(drop=True)
+
+
+def same_rollouts(a: pd.DataFrame, b: pd.DataFrame) -> bool:
+    """Whether two final evaluations are the same rollouts: as many rows, equal on :data:`SAME_ROLLOUTS`."""
+    return len(a) == len(b) and all(a[c].equals(b[c]) for c in SAME_ROLLOUTS)
+
+
+def r5_runs(ctx: Context, runs_dir: Path) -> dict[str, dict[int, object]]:
+    """R5's finished runs in ``runs_dir`` (the regime study's committed runs) per arm and seed: the runs that agree
+    with R7's uniform at R5's settings on :data:`R5_KEYS` (R7's ranking signal is not among them)."""
+    from benchmarks.studies.protocol import arm_of
+    from tar_rl.report import load_run
+
+    wanted = ctx.planner.spec(*ctx.sizes.base, "seed=0", "objective=uniform").config
+    found: dict[str, dict[int, object]] = {}
+    for path in sorted(p for p in runs_dir.glob("*") if (p / "config.yaml").is_file()) if runs_dir.is_dir() else ():
+        run = load_run(path)
+        if run.finished and all(_dotted(run.config, k) == _dotted(wanted, k) for k in R5_KEYS):
+            found.setdefault(arm_of(run.config), {})[run.seed] = run
+    return found
+
+
+def signal_alone(r7: dict[str, dict[int, object]], r5: dict[str, dict[int, object]]) -> tuple[list[dict], list[int]]:
+    """Each R7 TAR arm minus R5's of the same arm and seed (exploratory): the one difference is the signal TAR ranks
+    by. R5 trained at another commit, so a seed is paired only where R7's uniform run rolls out exactly as R5's
+    (:func:`same_rollouts`). Returns one row per arm with paired seeds (``comparison``, ``pairs``, the arms' mean
+    success, ``d_success`` with its 95% CI, ``p``, ``mde``, ``higher``) and the seeds left unpaired because their
+    uniform runs differ."""
+    from tar_rl.report import min_detectable_effect, paired_t, run_percent
+
+    def success(run) -> float:
+        return run_percent(run)[("success", "overall")]
+
+    common = sorted(set(r7.get("uniform", {})) & set(r5.get("uniform", {})))
+    alike = {s: same_rollouts(*(final_rollouts(runs["uniform"][s].path) for runs in (r7, r5))) for s in common}
+    rows = []
+    for arm in ("tar", "tar_gentle"):
+        seeds = [s for s in sorted(set(r7.get(arm, {})) & set(r5.get(arm, {}))) if alike.get(s)]
+        if not seeds:
+            continue
+        new, old = [success(r7[arm][s]) for s in seeds], [success(r5[arm][s]) for s in seeds]
+        stats = paired_t([a - b for a, b in zip(new, old, strict=True)])
+        rows.append(
+            {
+                "comparison": f"R7 {arm} - R5 {arm}",
+                "pairs": len(seeds),
+                "success_r7": sum(new) / len(new),
+                "success_r5": sum(old) / len(old),
+                "d_success": stats["mean"],
+                "d_success_ci_low": stats["ci_low"],
+                "d_success_ci_high": stats["ci_high"],
+                "p_success": stats["p_value"],
+                "mde_success": min_detectable_effect(stats["std"], len(seeds)),
+                "higher": sum(a > b for a, b in zip(new, old, strict=True)),
+            }
+        )
+    return rows, [s for s in common if not alike[s]]
+
+
+def signal_alone_lines(rows: Sequence[dict], unpaired: Sequence[int]) -> list[str]:
+    """The exploratory section of ``decision.md`` (:func:`signal_alone`)."""
+    out = [
+        "## The signal alone (exploratory, not pre-registered)",
+        "",
+        "| comparison | pairs | success % R7 / R5 | Δ success [95% CI] | p | MDE (80%) | R7 higher |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ci = f"[{fmt_num(r['d_success_ci_low'], 2, True)}, {fmt_num(r['d_success_ci_high'], 2, True)}]"
+        out.append(
+            f"| {r['comparison']} | {r['pairs']} | {fmt_num(r['success_r7'])} / {fmt_num(r['success_r5'])} "
+            f"| {fmt_num(r['d_success'], 2, True)} {ci} | {fmt_p(r['p_success'])} | {fmt_num(r['mde_success'], 2)} "
+            f"| {r['higher']} of {r['pairs']} |"
+        )
+    out += [
+        "",
+        "Each R7 TAR arm minus R5's of the same arm and seed: the same training but for the signal TAR ranks the steps "
+        "by (R7's against the loss). R5 trained at another commit, so a seed is paired only where R7's uniform run "
+        "rolls out exactly as R5's (every final rollout's task, variation, success and steps). Not one of R7's "
+        "pre-registered comparisons: no Holm.",
+    ]
+    if unpaired:
+        out += ["", f"Seeds left unpaired (their uniform runs roll out differently): {', '.join(map(str, unpaired))}."]
+    return out
+
+
 def pilot_rows(ctx: Context) -> list[dict]:
     """The pilot's finished runs: uniform's overall success per time sampling and seed on the tuning seed."""
     return [
@@ -388,8 +503,9 @@ def pilot_rows(ctx: Context) -> list[dict]:
     ]
 
 
-def decision_markdown(rows, groups: pd.DataFrame, fits, pilot: Sequence[dict], record, missing) -> str:
-    """R7's comparisons, per-group rows, fit and weights, the pilot and the selection, and the missing runs."""
+def decision_markdown(rows, groups: pd.DataFrame, fits, pilot: Sequence[dict], record, missing, alone=((), ())) -> str:
+    """R7's comparisons, per-group rows, fit and weights, the pilot and the selection, the signal alone
+    (``alone``: :func:`signal_alone`'s rows and unpaired seeds) and the missing runs."""
     out = ["# TAR for a sampled loss: R7's comparisons", ""]
     if record is not None and not record["train_r7"]:
         out += [f"{record['note']} (R5's rows of the regime study's decision table are R7's).", ""]
@@ -414,6 +530,8 @@ def decision_markdown(rows, groups: pd.DataFrame, fits, pilot: Sequence[dict], r
                 out.append(f"| {t} | {len(g)} | {per_seed} | {fmt_num(g['success'].mean(), 2)} |")
     if record is not None:
         out += ["", "## The selection", "", selection_text(record)]
+    if alone[0]:
+        out += ["", *signal_alone_lines(*alone)]
     out += pending_lines(missing)
     return "\n".join(out) + "\n"
 
@@ -428,8 +546,11 @@ def write_tables(ctx: Context, prov: dict, dest: Path, complete: bool = False) -
     fits = stage_fits({"r7": loaded["r7"]})
     pilot = pilot_rows(ctx)
     group_df = pd.concat(groups, ignore_index=True) if groups else pd.DataFrame()
-    md = decision_markdown(rows, group_df, fits, pilot, selection(ctx), missing)
+    alone = signal_alone(loaded["r7"], r5_runs(ctx, R5_RUNS))
+    md = decision_markdown(rows, group_df, fits, pilot, selection(ctx), missing, alone)
     tables = {"decision.csv": pd.DataFrame(rows)}
+    if alone[0]:
+        tables["signal_alone.csv"] = pd.DataFrame(alone[0])
     if len(group_df):
         tables["groups.csv"] = group_df
     if pilot:

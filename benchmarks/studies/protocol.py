@@ -1,4 +1,5 @@
-"""What the studies' plans fix once for all of them: the arms a comparison pairs and the task lists they train on.
+"""What the studies' plans fix once for all of them: the arms a comparison pairs (and the arm a run's config is) and
+the task lists they train on.
 
 Every study and analysis reads these names from here, so that a comparison's baseline is one name everywhere (the
 report's :data:`tar_rl.report.BASELINE`, against which its paired tables are computed).
@@ -9,7 +10,7 @@ from __future__ import annotations
 from benchmarks.studies.core import Arm
 from tar_rl.report.stats import BASELINE
 
-__all__ = ["BASELINE", "CHUNKED_ARMS", "EIGHT_TASKS", "PAIR", "SOURCE_TASKS", "TREATMENT"]
+__all__ = ["BASELINE", "CHUNKED_ARMS", "EIGHT_TASKS", "PAIR", "SOURCE_TASKS", "TREATMENT", "arm_of"]
 
 #: The treatment every paired comparison puts beside :data:`BASELINE` (``uniform``): TAR at tar-rl's defaults.
 TREATMENT = "tar"
@@ -30,3 +31,16 @@ SOURCE_TASKS = (
     "lever-pull,peg-unplug-side,pick-place,plate-slide-back-side,plate-slide-back,plate-slide-side,plate-slide,"
     "push-back,push,push-wall,reach-wall,shelf-place,soccer,stick-push,sweep-into,sweep,window-close,window-open"
 )
+
+
+def arm_of(config: dict) -> str:
+    """A run's arm from its config: the objective's name, ``tar_gentle`` for a ``tar`` run with the preset's gamma,
+    cap and w_max (its ``objective.name`` is ``tar``)."""
+    from tar_rl.recipes.config import OBJECTIVE_PRESETS
+
+    objective = config.get("objective") or {}
+    gentle = OBJECTIVE_PRESETS["tar_gentle"]
+    keys = ("gamma", "cap", "w_max")
+    if objective.get("name") == gentle.name and all(objective.get(k) == getattr(gentle, k) for k in keys):
+        return "tar_gentle"
+    return str(objective.get("name"))

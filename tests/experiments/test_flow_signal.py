@@ -448,3 +448,75 @@ def test_r7s_committed_uniform_runs_repeat_r5s_rollouts():
         assert (a["return"] - b["return"]).abs().max() < 1e-9, run.name
         compared += 1
     assert compared >= 1
+
+
+def test_the_committed_signal_alone_table_repeats_a_hand_pairing_of_r7s_and_r5s_tar_runs():
+    """``signal_alone.csv`` (each R7 TAR arm minus R5's, seeds whose uniform runs roll out alike) against a pairing
+    done here from the committed rollouts with yaml, pandas and scipy: arms told by the objective's settings, the
+    seeds gated on equal final rollouts, the paired t CI and p from scipy."""
+    from scipy import stats
+
+    table = pd.read_csv(R7 / "signal_alone.csv")
+    r5 = cli.RESULTS / "regimes" / "runs"
+
+    def arm(cfg) -> str:
+        o = cfg["objective"]
+        return "tar_gentle" if o["name"] == "tar" and o["w_max"] != 3.0 else o["name"]
+
+    def runs(folder, eval_seed=1000) -> dict:
+        out = {}
+        for path in sorted(folder.glob("*-flow-s*")):
+            cfg, final = committed_run(path)
+            if cfg["eval"]["seed"] == eval_seed and cfg["data"]["n_demos"] == 50 and len(final) == 1000:
+                out[(arm(cfg), cfg["seed"])] = final
+        return out
+
+    new, old = runs(R7 / "runs"), runs(r5)
+    alike = {
+        s
+        for (a, s), f in new.items()
+        if a == "uniform"
+        and ("uniform", s) in old
+        and f[["task", "success", "steps"]].equals(old[("uniform", s)][["task", "success", "steps"]])
+    }
+    for name in ("tar", "tar_gentle"):
+        seeds = sorted(s for (a, s) in new if a == name and (a, s) in old and s in alike)
+        deltas = [100 * (new[(name, s)]["success"].mean() - old[(name, s)]["success"].mean()) for s in seeds]
+        (row,) = table[table["comparison"] == f"R7 {name} - R5 {name}"].to_dict("records")
+        assert row["pairs"] == len(seeds) >= 2
+        test = stats.ttest_1samp(deltas, 0.0)
+        half = stats.t.ppf(0.975, len(deltas) - 1) * stats.sem(deltas)
+        mean = sum(deltas) / len(deltas)
+        assert row["d_success"] == pytest.approx(mean, abs=1e-5)
+        assert (row["d_success_ci_low"], row["d_success_ci_high"]) == pytest.approx(
+            (mean - half, mean + half), abs=1e-5
+        )
+        assert row["p_success"] == pytest.approx(test.pvalue, abs=1e-5)
+        assert row["higher"] == sum(d > 0 for d in deltas)
+
+
+def test_a_seed_whose_uniform_runs_roll_out_differently_is_not_paired(tmp_path):
+    """The gate of the exploratory pairing: one rollout's success flipped in R5's uniform run leaves that seed out
+    and names it; the same rollouts pair it."""
+    from types import SimpleNamespace
+
+    def run(folder: Path, seed: int, success: list[int], objective: str = "uniform"):
+        folder.mkdir(parents=True)
+        rows = pd.DataFrame(
+            {
+                "step": 10,
+                "task": ["reach", "push"],
+                "variation_seed": [1, 2],
+                "variation_index": [0, 1],
+                "success": success,
+                "steps": [30, 40],
+            }
+        )
+        rows.to_csv(folder / "eval_rollouts.csv", index=False)
+        return SimpleNamespace(path=folder, seed=seed, objective=objective)
+
+    r7 = {"uniform": {0: run(tmp_path / "a", 0, [1, 0])}}
+    same = {"uniform": {0: run(tmp_path / "b", 0, [1, 0])}}
+    flipped = {"uniform": {0: run(tmp_path / "c", 0, [1, 1])}}
+    assert flow_signal.signal_alone(r7, same) == ([], [])
+    assert flow_signal.signal_alone(r7, flipped) == ([], [0])
