@@ -118,6 +118,7 @@ def test_the_reading_rule_matches_a_hand_count():
     read = sorted(rel.rsplit("/", 1)[1].rsplit("-", 1)[0] for rel, c in configs.items() if reads_weights(rel, c))
     r3 = sorted(f"{objective}-mlp-s{seed}" for objective in ("tar", "uniform") for seed in range(8))
     r4_r5 = ["tar-act-s0", "tar-act-s0", "uniform-act-s0", "tar-flow-s0", "tar-flow-s0", "uniform-flow-s0"]
-    r6 = ["invert-act-s0", "random-act-s0", "shuffle-act-s0"]  # R6's seed-0 controls
+    # R6's seed-0 controls: placement and perturbation
+    r6 = ["invert-act-s0", "perturb_high-act-s0", "perturb_low-act-s0", "random-act-s0", "shuffle-act-s0"]
     r7 = ["tar-flow-s0", "tar-flow-s0", "uniform-flow-s0"]  # R7's seed-0 arms: tar, tar_gentle, uniform
     assert read == sorted([*r3, *r4_r5, *r6, *r7])
