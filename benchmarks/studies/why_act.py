@@ -258,31 +258,46 @@ def stage_runs(ctx: Context, stage: str, complete: bool) -> tuple[dict[str, dict
 
 def comparison_rows(ctx: Context, complete: bool) -> tuple[list[dict], list[pd.DataFrame], list[dict], dict, list]:
     """Every comparison with paired seeds (Holm over the primary ones present), their per-group rows, the fit
-    and weights of each stage's arms over its paired seeds, the missing runs per stage and the placement arms'
-    per-seed differences to uniform (:func:`paired_rows`)."""
+    and weights of each stage's arms over its paired seeds, the missing runs per stage and the arms' per-seed
+    differences to uniform (:func:`paired_rows`)."""
     loaded, missing = {}, {}
     for stage in ("placement", "tuned", "perturb"):
         loaded[stage], missing[stage] = stage_runs(ctx, stage, complete)
     rows, groups = contrasts(COMPARISONS, loaded)
-    return rows, groups, stage_fits(loaded), missing, paired_rows(loaded["placement"])
+    return rows, groups, stage_fits(loaded), missing, paired_rows(loaded)
 
 
-def paired_rows(placement: dict[str, dict[int, object]]) -> list[dict]:
-    """Each placement arm (``tar`` and the controls) minus ``uniform`` per seed, in points of overall success:
-    ``label``, ``group``, ``seed``, ``delta``; the paired-difference figure of the regime study reads them
-    (``paired.csv``)."""
+#: The paired figure's R6 rows, ``(stage, arm, label)``, each arm minus the same stage's ``uniform`` per seed: the
+#: placement arms (TAR and its controls), the perturbation arms and the tuned pair's TAR.
+PAIRED = (
+    *(("placement", arm, f"R6 act: {arm}") for arm in ("tar", *CONTROLS)),
+    *(("perturb", arm, f"R6 act: {arm}") for arm in PERTURB),
+    ("tuned", "tar", "R6c act: tar (tuned lr)"),
+)
+
+
+def paired_rows(loaded: dict[str, dict[str, dict[int, object]]]) -> list[dict]:
+    """Each arm of :data:`PAIRED` minus its stage's ``uniform`` per seed, in points of overall success: ``label``,
+    ``group`` (``R6``), ``seed``, ``delta``; the paired-difference figure of the regime study reads them
+    (``paired.csv``). ``loaded``: per stage, the finished runs per arm and seed. The placement stage's ``tar``
+    (R4's pairs repeated) is drawn only for the seeds with a control."""
     from tar_rl.report import run_percent
 
     def success(run) -> float:
         return run_percent(run)[("success", "overall")]
 
-    uniform = placement.get("uniform", {})
-    return [
-        {"label": f"R6 act: {arm}", "group": "R6", "seed": seed, "delta": success(run) - success(uniform[seed])}
-        for arm in ("tar", *CONTROLS)
-        for seed, run in sorted(placement.get(arm, {}).items())
-        if seed in uniform and any(seed in placement.get(c, {}) for c in CONTROLS)
-    ]
+    def drawn(stage: str, seed: int) -> bool:
+        arms = loaded.get(stage, {})
+        return stage != "placement" or any(seed in arms.get(c, {}) for c in CONTROLS)
+
+    rows = []
+    for stage, arm, label in PAIRED:
+        uniform = loaded.get(stage, {}).get("uniform", {})
+        for seed, run in sorted(loaded.get(stage, {}).get(arm, {}).items()):
+            if seed in uniform and drawn(stage, seed):
+                delta = success(run) - success(uniform[seed])
+                rows.append({"label": label, "group": "R6", "seed": seed, "delta": delta})
+    return rows
 
 
 def tuning_rows(ctx: Context) -> list[dict]:

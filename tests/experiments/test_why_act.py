@@ -316,3 +316,47 @@ def test_the_committed_tuning_record_recomputes_from_the_committed_tuning_runs()
     gain = (sum(per_rate[best]) - sum(per_rate[0.001])) / 2
     assert record["best"] == best == 0.003
     assert record["gain_over_reference"] == pytest.approx(gain) and record["train_pair"] == (gain >= 2)
+
+
+def test_the_committed_paired_rows_of_the_perturbation_arms_and_the_tuned_pair_are_differences_to_their_uniform():
+    """``r6/paired.csv``'s perturbation and tuned-pair rows against success computed here from the committed
+    rollouts: each arm's run minus the uniform run of its seed and learning rate at evaluation seed 1000 (R6's own
+    where R6 trained one, else R4's), found by config with yaml."""
+    import pandas as pd
+
+    r6, r4 = cli.RESULTS / "regimes" / "r6" / "runs", cli.RESULTS / "regimes" / "runs"
+
+    def final_runs(folder):
+        out = []
+        for path in sorted(folder.glob("*-act-s*")):
+            cfg, final = committed_run(path)
+            if cfg["eval"]["seed"] == 1000 and cfg["data"]["n_demos"] == 50 and len(final) == 1000:
+                out.append((cfg, 100 * final["success"].mean()))
+        return out
+
+    ours, r4s = final_runs(r6), final_runs(r4)
+
+    def uniform(seed, lr):
+        for runs in (ours, r4s):
+            found = [
+                v
+                for c, v in runs
+                if c["objective"]["name"] == "uniform" and c["seed"] == seed and c["optim"]["lr"] == lr
+            ]
+            if found:
+                (value,) = found
+                return value
+        raise AssertionError(f"no uniform run of seed {seed} at lr {lr}")
+
+    paired = pd.read_csv(cli.RESULTS / "regimes" / "r6" / "paired.csv")
+    labels = {"R6 act: perturb_high": ("perturb_high", 1e-3), "R6 act: perturb_low": ("perturb_low", 1e-3)}
+    labels["R6c act: tar (tuned lr)"] = ("tar", 3e-3)
+    checked = 0
+    for label, (arm, lr) in labels.items():
+        rows = paired[paired["label"] == label]
+        runs = {c["seed"]: v for c, v in ours if c["objective"]["name"] == arm and c["optim"]["lr"] == lr}
+        assert sorted(rows["seed"]) == sorted(runs), label
+        for seed, delta in zip(rows["seed"], rows["delta"], strict=True):
+            assert delta == pytest.approx(runs[seed] - uniform(seed, lr), abs=1e-6), (label, seed)
+            checked += 1
+    assert checked >= 10  # the tuned pair's eight seeds and at least one of each perturbation arm
