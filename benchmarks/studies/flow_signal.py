@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
+import yaml
 
 from benchmarks.studies import sweep
 from benchmarks.studies.cli import RESULTS, with_seeds
@@ -424,9 +425,11 @@ def r5_runs(ctx: Context, runs_dir: Path) -> dict[str, dict[int, object]]:
     wanted = ctx.planner.spec(*ctx.sizes.base, "seed=0", "objective=uniform").config
     found: dict[str, dict[int, object]] = {}
     for path in sorted(p for p in runs_dir.glob("*") if (p / "config.yaml").is_file()) if runs_dir.is_dir() else ():
-        run = load_run(path)
-        if run.finished and all(_dotted(run.config, k) == _dotted(wanted, k) for k in R5_KEYS):
-            found.setdefault(arm_of(run.config), {})[run.seed] = run
+        config = yaml.safe_load((path / "config.yaml").read_text())
+        if all(_dotted(config, k) == _dotted(wanted, k) for k in R5_KEYS):  # only R5's runs are loaded
+            run = load_run(path)
+            if run.finished:
+                found.setdefault(arm_of(run.config), {})[run.seed] = run
     return found
 
 
