@@ -64,10 +64,17 @@ def paired(runs: Sequence, objective: str, metric: str = "success", level: str =
     return rec
 
 
+def overall_success(run) -> float:
+    """A finished run's overall success in percent (its final evaluation)."""
+    from tar_rl.report import run_percent
+
+    return run_percent(run)[("success", "overall")]
+
+
 def contrast(label: str, treatment: Sequence, baseline: Sequence) -> tuple[dict, pd.DataFrame]:
     """One comparison's row (success, Fast20 and NEPS: means, the mean paired difference, its 95% CI, the paired
     t-test's p, the MDE at 80% power, pairs where the treatment is higher) and its per-group rows."""
-    from tar_rl.report import min_detectable_effect, paired_table, run_percent
+    from tar_rl.report import min_detectable_effect, paired_table
 
     t_name, b_name = treatment[0].objective, baseline[0].objective
     paired = paired_table([*treatment, *baseline], baseline=b_name, objectives=[t_name], file=io.StringIO())
@@ -81,8 +88,8 @@ def contrast(label: str, treatment: Sequence, baseline: Sequence) -> tuple[dict,
         if metric == "success":
             row["pairs"] = int(rec["n_pairs"])
             row["mde_success"] = min_detectable_effect(rec["delta_std"], int(rec["n_pairs"]))
-    by_seed = {r.seed: run_percent(r)[("success", "overall")] for r in baseline}
-    row["higher"] = sum(run_percent(r)[("success", "overall")] > by_seed[r.seed] for r in treatment)
+    by_seed = {r.seed: overall_success(r) for r in baseline}
+    row["higher"] = sum(overall_success(r) > by_seed[r.seed] for r in treatment)
     groups = paired[(paired["metric"] == "success") & (paired["level"] != "overall")].assign(comparison=label)
     return row, groups
 

@@ -48,7 +48,15 @@ import yaml
 
 from benchmarks.studies import sweep
 from benchmarks.studies.cli import RESULTS, with_seeds
-from benchmarks.studies.compare import FINAL_SHARE, Comparison, check_pairs, contrasts, finished_runs, stage_fits
+from benchmarks.studies.compare import (
+    FINAL_SHARE,
+    Comparison,
+    check_pairs,
+    contrasts,
+    finished_runs,
+    overall_success,
+    stage_fits,
+)
 from benchmarks.studies.core import Arm, Grid, Scale, Spec, seed_major
 from benchmarks.studies.protocol import CHUNKED_ARMS
 from benchmarks.studies.records import provenance, read_json
@@ -374,14 +382,14 @@ def paired_rows(r7: dict[str, dict[int, object]]) -> list[dict]:
     """Each TAR arm minus ``uniform`` per seed, in points of overall success: ``label`` (``R7 flow: <arm>``),
     ``group`` (``R7``), ``seed``, ``delta``; the regime study's paired-difference figure reads them
     (``paired.csv``)."""
-    from tar_rl.report import run_percent
-
-    def success(run) -> float:
-        return run_percent(run)[("success", "overall")]
-
     uniform = r7.get("uniform", {})
     return [
-        {"label": f"R7 flow: {arm}", "group": "R7", "seed": seed, "delta": success(run) - success(uniform[seed])}
+        {
+            "label": f"R7 flow: {arm}",
+            "group": "R7",
+            "seed": seed,
+            "delta": overall_success(run) - overall_success(uniform[seed]),
+        }
         for arm in ("tar", "tar_gentle")
         for seed, run in sorted(r7.get(arm, {}).items())
         if seed in uniform
@@ -439,10 +447,7 @@ def signal_alone(r7: dict[str, dict[int, object]], r5: dict[str, dict[int, objec
     (:func:`same_rollouts`). Returns one row per arm with paired seeds (``comparison``, ``pairs``, the arms' mean
     success, ``d_success`` with its 95% CI, ``p``, ``mde``, ``higher``) and the seeds left unpaired because their
     uniform runs differ."""
-    from tar_rl.report import min_detectable_effect, paired_t, run_percent
-
-    def success(run) -> float:
-        return run_percent(run)[("success", "overall")]
+    from tar_rl.report import min_detectable_effect, paired_t
 
     common = sorted(set(r7.get("uniform", {})) & set(r5.get("uniform", {})))
     alike = {s: same_rollouts(*(final_rollouts(runs["uniform"][s].path) for runs in (r7, r5))) for s in common}
@@ -451,7 +456,7 @@ def signal_alone(r7: dict[str, dict[int, object]], r5: dict[str, dict[int, objec
         seeds = [s for s in sorted(set(r7.get(arm, {})) & set(r5.get(arm, {}))) if alike.get(s)]
         if not seeds:
             continue
-        new, old = [success(r7[arm][s]) for s in seeds], [success(r5[arm][s]) for s in seeds]
+        new, old = [overall_success(r7[arm][s]) for s in seeds], [overall_success(r5[arm][s]) for s in seeds]
         stats = paired_t([a - b for a, b in zip(new, old, strict=True)])
         rows.append(
             {

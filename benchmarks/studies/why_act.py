@@ -38,6 +38,7 @@ from benchmarks.studies.compare import (
     contrast,
     contrasts,
     finished_runs,
+    overall_success,
     stage_fits,
 )
 from benchmarks.studies.core import Arm, Grid, Scale, Spec
@@ -281,10 +282,6 @@ def paired_rows(loaded: dict[str, dict[str, dict[int, object]]]) -> list[dict]:
     ``group`` (``R6``), ``seed``, ``delta``; the paired-difference figure of the regime study reads them
     (``paired.csv``). ``loaded``: per stage, the finished runs per arm and seed. The placement stage's ``tar``
     (R4's pairs repeated) is drawn only for the seeds with a control."""
-    from tar_rl.report import run_percent
-
-    def success(run) -> float:
-        return run_percent(run)[("success", "overall")]
 
     def drawn(stage: str, seed: int) -> bool:
         arms = loaded.get(stage, {})
@@ -295,7 +292,7 @@ def paired_rows(loaded: dict[str, dict[str, dict[int, object]]]) -> list[dict]:
         uniform = loaded.get(stage, {}).get("uniform", {})
         for seed, run in sorted(loaded.get(stage, {}).get(arm, {}).items()):
             if seed in uniform and drawn(stage, seed):
-                delta = success(run) - success(uniform[seed])
+                delta = overall_success(run) - overall_success(uniform[seed])
                 rows.append({"label": label, "group": "R6", "seed": seed, "delta": delta})
     return rows
 
