@@ -43,19 +43,34 @@ __all__ = ["main", "pilot_report", "record_pilot", "training_record", "training_
 #: A line of ``lerobot-train``'s log: its time and message (the progress bar shares lines with it, split by ``\r``).
 LOG_LINE = re.compile(r"INFO (\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) \S+ (.*)$")
 CHECKPOINT_LINE = re.compile(r"Checkpoint policy after step (\d+)")
+SUFFIXES = "KMBTQ"  # thousands, millions, ...: LeRobot's ``format_big_number``
 START = "Start offline training"
 #: Where ``record`` writes, from the repository root, and the names of what it writes.
 RESULTS = Path("benchmarks") / "results" / "lerobot_pilot"
 TRAINING_FILE, LOG_FILE, REPORT_FILE = "training.json", "train_log.csv", "report.md"
 
 
-def training_segments(log: str) -> list[dict]:
+def logged_number(text: str) -> tuple[float, float]:
+    """A number as ``lerobot-train`` logs it (LeRobot's ``format_big_number``: ``512``, ``1K``, ``2M``) and the unit
+    its digits are rounded to (1, 1000, ...)."""
+    power = SUFFIXES.index(text[-1]) + 1 if text[-1] in SUFFIXES else 0
+    unit = 1000.0**power
+    return float(text[:-1] if power else text) * unit, unit
+
+
+def training_segments(log: str, log_freq: int) -> list[dict]:
     """The segments of one run's ``lerobot-train`` log (each start and resumption appends to the same file).
 
     Each segment: its start (the line ``Start offline training``), the step it started from (the previous segment's
     last checkpoint, which ``--resume`` loads as ``checkpoints/last``), its last checkpoint and that line's time (the
     work kept: steps after the last checkpoint are lost and done again by the next segment), and its step lines as
     ``key:value`` fields. The lines before a segment's start (its config, dataset and policy) are not read.
+
+    A step line is logged at every multiple of ``log_freq`` (the run's ``log_freq``), its step rounded past 999
+    (``1K``): the line's exact step is counted from the segment's first step, and must round to the logged one.
+
+    Raises:
+        ValueError: a step line whose logged step is not the counted one (a line missing or out of place).
     """
     segments: list[dict] = []
     for part in re.split(r"[\r\n]", log):
@@ -75,14 +90,25 @@ def training_segments(log: str) -> list[dict]:
             segment["checkpoint"], segment["kept_until"] = int(saved.group(1)), when
         elif message.startswith("step:"):
             fields = dict(token.split(":", 1) for token in message.split() if ":" in token)
-            segment["steps"].append({"time": when.isoformat(sep=" "), **fields})
+            step = (segment["from_step"] // log_freq + 1 + len(segment["steps"])) * log_freq
+            logged = fields.pop("step")
+            value, unit = logged_number(logged)
+            if abs(value - step) > unit / 2:
+                raise ValueError(
+                    f"the step line at {when} logs step {logged}, where counting from step "
+                    f"{segment['from_step']} every {log_freq} gives {step}"
+                )
+            segment["steps"].append({"time": when.isoformat(sep=" "), "step": step, **fields})
     return segments
 
 
-def training_record(arm: str, log: str, steps: int = R4_STEPS) -> tuple[dict, pd.DataFrame]:
+def training_record(arm: str, log: str, log_freq: int, steps: int = R4_STEPS) -> tuple[dict, pd.DataFrame]:
     """One run's ``training.json`` (its segments, the steps it resumed at, the seconds of work kept) and its step
-    lines, from its ``lerobot-train`` log."""
-    segments = training_segments(log)
+    lines, from its ``lerobot-train`` log (:func:`training_segments`)."""
+    try:
+        segments = training_segments(log, log_freq)
+    except ValueError as error:
+        raise ValueError(f"{arm}: {error}") from None
     if not segments:
         raise ValueError(f"{arm}: its log holds no '{START}' line")
     rows = []
@@ -135,8 +161,9 @@ def record_pilot(root: Path, out: Path, seed: int = 0) -> list[str]:
         target, log = out / name, root / f"{arm}.log"
         config = root / "runs" / name / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
         if config.is_file() and log.is_file():
-            record, lines = training_record(arm, log.read_text(errors="replace"))
-            _write_text(target / "train_config.json", portable_text(config.read_text(), root))
+            text = config.read_text()
+            record, lines = training_record(arm, log.read_text(errors="replace"), json.loads(text)["log_freq"])
+            _write_text(target / "train_config.json", portable_text(text, root))
             write_json_atomic(record, target / TRAINING_FILE)
             write_csv_atomic(lines, target / LOG_FILE)
             written.append(f"{name}: trained to step {record['segments'][-1]['to_checkpoint']} of {record['steps']}")

@@ -34,7 +34,7 @@ LOG = (
 
 
 def test_a_resumed_runs_log_is_read_into_its_segments_and_step_lines():
-    record, lines = results.training_record("act", LOG, steps=8)
+    record, lines = results.training_record("act", LOG, log_freq=2, steps=8)
     # segment 1: 10:00:10 -> its checkpoint at step 4, 10:00:52 (42 s, 10.5 s a step); step 5's work is lost.
     # segment 2: from step 4 (the checkpoint it resumed) 11:00:04 -> step 8's checkpoint 11:00:25 (21 s, 5.25 s a step)
     assert record == {
@@ -50,7 +50,7 @@ def test_a_resumed_runs_log_is_read_into_its_segments_and_step_lines():
              "seconds_per_step": 5.25},
         ],
     }  # fmt: skip
-    assert lines["step"].tolist() == ["2", "4", "6", "8"]
+    assert lines["step"].tolist() == [2, 4, 6, 8]
     assert lines["loss"].astype(float).tolist() == [9.5, 4.0, 2.0, 1.0]
     assert lines["l1_loss"].astype(float).tolist() == [0.5, 0.25, 0.125, 0.0625]
     assert lines["time"].tolist()[2] == "2026-12-06 11:00:14"
@@ -58,17 +58,42 @@ def test_a_resumed_runs_log_is_read_into_its_segments_and_step_lines():
 
 def test_a_run_stopped_before_its_last_step_is_not_finished_and_a_log_without_training_is_refused():
     stopped = LOG.split("INFO 2026-12-06 11:00:00")[0]
-    record, _ = results.training_record("act_tar", stopped, steps=8)
+    record, _ = results.training_record("act_tar", stopped, 2, steps=8)
     assert not record["finished"] and record["resumed_at"] == [] and record["train_seconds"] == 42.0
     with pytest.raises(ValueError, match="act_tar: its log holds no 'Start offline training' line"):
-        results.training_record("act_tar", "INFO 2026-12-06 10:00:00 ot_train.py:272 {'batch_size': 64,\n")
+        results.training_record("act_tar", "INFO 2026-12-06 10:00:00 ot_train.py:272 {'batch_size': 64,\n", 2)
+
+
+def _steps(*logged: str) -> str:
+    """A segment's log whose step lines log ``logged``."""
+    lines = [f"INFO 2026-12-06 10:00:00 ot_train.py:597 {results.START}\n"]
+    lines += [f"INFO 2026-12-06 10:0{i + 1}:00 ot_train.py:641 step:{s} loss:1.0\n" for i, s in enumerate(logged)]
+    return "".join(lines)
+
+
+def test_steps_logged_rounded_past_999_are_counted_exactly_and_a_line_out_of_place_is_refused():
+    # LeRobot logs 1,000 as 1K and 1,500 as 2K (0 decimals): the counted steps are 500, 1000, 1500, 2000
+    _, lines = results.training_record("act", _steps("500", "1K", "2K", "2K"), log_freq=500)
+    assert lines["step"].tolist() == [500, 1000, 1500, 2000]
+    # resumed from a checkpoint at step 1,250: the next lines are at 1,500 and 2,000
+    saved = "INFO 2026-12-06 10:09:00 ot_train.py:687 Checkpoint policy after step 1250\n"
+    resumed = results.training_segments(_steps("500", "1K") + saved + _steps("2K", "2K"), 500)[1]
+    assert resumed["from_step"] == 1250 and [line["step"] for line in resumed["steps"]] == [1500, 2000]
+    # one line missing: the third counts 1,500 where 3K (2,500 to 3,499) was logged
+    with pytest.raises(ValueError, match=r"^act: the step line at 2026-12-06 10:03:00 logs step 3K, where counting "
+                                         r"from step 0 every 500 gives 1500$"):  # fmt: skip
+        results.training_record("act", _steps("500", "1K", "3K"), log_freq=500)
+    with pytest.raises(ValueError, match="logs step 600, where counting from step 0 every 500 gives 500"):
+        results.training_record("act", _steps("600"), log_freq=500)
 
 
 def _pilot(tmp_path, arm="act", summary=None):
     root = tmp_path / "pilot-root"
     config = root / "runs" / f"{arm}-seed0" / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
     config.parent.mkdir(parents=True)
-    config.write_text(json.dumps({"dataset": {"root": f"{root}/lerobot/mt50"}, "output_dir": f"{root}/runs/x"}))
+    config.write_text(
+        json.dumps({"dataset": {"root": f"{root}/lerobot/mt50"}, "output_dir": f"{root}/runs/x", "log_freq": 2})
+    )
     (root / f"{arm}.log").write_text(LOG)
     if summary is not None:
         evaluation = root / "eval" / f"{arm}-seed0"
@@ -86,6 +111,7 @@ def test_record_writes_a_trained_and_evaluated_run_with_paths_relative_to_the_re
     assert json.loads((out / "train_config.json").read_text()) == {
         "dataset": {"root": "pilot/lerobot/mt50"},
         "output_dir": "pilot/runs/x",
+        "log_freq": 2,
     }
     assert json.loads((out / "summary.json").read_text())["checkpoint"] == "pilot/runs/x/last"
     assert gzip.decompress((out / "eval_rollouts.csv.gz").read_bytes()) == b"task,rollout,success\nreach-v3,0,1\n"
@@ -99,7 +125,7 @@ def test_record_writes_a_trained_and_evaluated_run_with_paths_relative_to_the_re
 def test_record_refuses_a_path_it_cannot_write_relative_to_the_repository(tmp_path):
     root = _pilot(tmp_path)
     config = next(root.glob("runs/*/checkpoints/last/pretrained_model/train_config.json"))
-    config.write_text(json.dumps({"cache": "/nowhere-known/hub"}))
+    config.write_text(json.dumps({"cache": "/nowhere-known/hub", "log_freq": 2}))
     with pytest.raises(ValueError, match="cannot write /nowhere-known/hub relative to the repository"):
         results.record_pilot(root, tmp_path / "out")
 
@@ -113,7 +139,7 @@ def test_the_report_gives_both_runs_their_times_and_the_cost_of_eight_pairs(tmp_
     for arm, success, eval_seconds in (("act", 0.5, 1800.0), ("act_tar", 0.625, 1620.0)):
         folder = tmp_path / f"{arm}-seed0"
         folder.mkdir()
-        record, _ = results.training_record(arm, LOG, steps=8)
+        record, _ = results.training_record(arm, LOG, 2, steps=8)
         record["train_seconds"] = 3600.0 if arm == "act" else 5400.0
         (folder / "training.json").write_text(json.dumps(record))
         final = [_group("easy", success, 0.1, 0.2, 28), {**_group("overall", success, 0.25, 0.375), "level": "overall"}]
@@ -129,7 +155,7 @@ def test_the_report_gives_both_runs_their_times_and_the_cost_of_eight_pairs(tmp_
 
 def test_the_report_says_what_is_not_finished(tmp_path):
     (tmp_path / "act-seed0").mkdir()
-    record, _ = results.training_record("act", LOG.split("INFO 2026-12-06 11:00:00")[0], steps=8)
+    record, _ = results.training_record("act", LOG.split("INFO 2026-12-06 11:00:00")[0], 2, steps=8)
     (tmp_path / "act-seed0" / "training.json").write_text(json.dumps(record))
     text = results.pilot_report(tmp_path)
     assert "| act-seed0 | 0.01 h | - | 10.50 | - | - | - | - |" in text
