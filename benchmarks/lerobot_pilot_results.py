@@ -14,7 +14,10 @@ Paths are written relative to the repository (the pilot's folder as ``pilot``); 
 again rewrites what it finds, so a run is recorded once trained and again once evaluated.
 
 ``report``: the pair's table from what is recorded (``report.md``): each run's success, Fast20 and NEPS, its
-training time and where it resumed, its evaluation time, and what a study of eight pairs costs at those times.
+training time and where it resumed, its evaluation time, and what a study of eight pairs costs at those times; and,
+once recorded, the exploratory third run beside the pair (``act_tar`` with TAR never on, registered in PLAN.md after
+the pair: TAR on the same segments, and segments against independent frames), checked to log what ``act_tar`` logs
+before TAR's start.
 
     python -m benchmarks.lerobot_pilot_results record --root DIR [--seed 0] [--out benchmarks/results/lerobot_pilot]
     python -m benchmarks.lerobot_pilot_results report [--results benchmarks/results/lerobot_pilot]
@@ -33,7 +36,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.lerobot_pilot import ARMS, R4_STEPS, REPO
+from benchmarks.lerobot_pilot import ARMS, R4_STEPS, REPO, TAR_START
 from benchmarks.relative_paths import rewrite
 from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
 from tar_rl.runs import ROLLOUTS_FILE, SUMMARY_FILE
@@ -48,6 +51,12 @@ START = "Start offline training"
 #: Where ``record`` writes, from the repository root, and the names of what it writes.
 RESULTS = Path("benchmarks") / "results" / "lerobot_pilot"
 TRAINING_FILE, LOG_FILE, REPORT_FILE = "training.json", "train_log.csv", "report.md"
+#: The pilot's runs: the pair, then ``act_tar`` with TAR never on (``--policy.tar.start`` at the last step: the uniform
+#: mean over the same segments), an exploratory run registered in PLAN.md after the pair.
+EXPLORATORY = "act_tar_uniform"
+RUNS = (*ARMS, EXPLORATORY)
+#: The step lines' timings, which differ between runs that compute the same values.
+TIMINGS = ("time", "updt_s", "data_s", "smp/s")
 
 
 def logged_number(text: str) -> tuple[float, float]:
@@ -153,16 +162,16 @@ def _write_text(path: Path, text: str) -> None:
 
 
 def record_pilot(root: Path, out: Path, seed: int = 0) -> list[str]:
-    """Write each finished part of the pilot under ``root`` into ``out/<arm>-seed<seed>`` (the module's table of
-    files); returns a line for each run trained and each evaluated."""
+    """Write each finished part of the pilot under ``root`` (its :data:`RUNS`) into ``out/<run>-seed<seed>`` (the
+    module's table of files); returns a line for each run trained and each evaluated."""
     written = []
-    for arm in ARMS:
-        name = f"{arm}-seed{seed}"
-        target, log = out / name, root / f"{arm}.log"
+    for run in RUNS:
+        name = f"{run}-seed{seed}"
+        target, log = out / name, root / f"{run}.log"
         config = root / "runs" / name / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
         if config.is_file() and log.is_file():
             text = config.read_text()
-            record, lines = training_record(arm, log.read_text(errors="replace"), json.loads(text)["log_freq"])
+            record, lines = training_record(run, log.read_text(errors="replace"), json.loads(text)["log_freq"])
             _write_text(target / "train_config.json", portable_text(text, root))
             write_json_atomic(record, target / TRAINING_FILE)
             write_csv_atomic(lines, target / LOG_FILE)
@@ -176,6 +185,15 @@ def record_pilot(root: Path, out: Path, seed: int = 0) -> list[str]:
     return written
 
 
+def same_before(a: pd.DataFrame, b: pd.DataFrame, step: int) -> tuple[bool, int]:
+    """Whether two runs' step lines (``train_log.csv``) before ``step`` agree in every logged value but the timings
+    (:data:`TIMINGS`), and how many lines that compares (0: one of them has none)."""
+    a, b = (frame[frame["step"] < step].drop(columns=list(TIMINGS), errors="ignore") for frame in (a, b))
+    if a.empty or b.empty:
+        return False, 0
+    return len(a) == len(b) and list(a.columns) == list(b.columns) and a.astype(str).equals(b.astype(str)), len(a)
+
+
 def _read(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
@@ -184,37 +202,77 @@ def _percent(group: dict | None, key: str) -> str:
     return f"{100 * group[key]:.1f}" if group else "-"
 
 
+def _overall(summary: dict | None) -> dict | None:
+    return next((g for g in summary["final"] if g["name"] == "overall"), None) if summary else None
+
+
+def _rows(folder: Path, label: str) -> tuple[str, list[str]]:
+    """A run's row of the table and its rows per difficulty group."""
+    record, summary = _read(folder / TRAINING_FILE), _read(folder / SUMMARY_FILE)
+    overall = _overall(summary)
+    training = resumed = rates = evaluation = "-"
+    if record:
+        training = f"{record['train_seconds'] / 3600:.2f} h"
+        resumed = ", ".join(map(str, record["resumed_at"])) or "-"
+        rates = ", ".join(f"{s['seconds_per_step']:.2f}" for s in record["segments"] if s["seconds_per_step"]) or "-"
+    if summary:
+        evaluation = f"{summary['final_eval_seconds'] / 60:.1f} min"
+    row = (
+        f"| {label} | {training} | {resumed} | {rates} | {evaluation} | {_percent(overall, 'success')} | "
+        f"{_percent(overall, 'fast20')} | {_percent(overall, 'neps')} |"
+    )
+    groups = [
+        f"| {label} | {g['name']} | {g['n_tasks']} | {g['n_rollouts']} | {_percent(g, 'success')} | "
+        f"{_percent(g, 'fast20')} | {_percent(g, 'neps')} |"
+        for g in (summary["final"] if summary else [])
+        if g["name"] != "overall"
+    ]
+    return row, groups
+
+
+def _finished(folder: Path) -> tuple[dict, dict] | None:
+    record, summary = _read(folder / TRAINING_FILE), _read(folder / SUMMARY_FILE)
+    return (record, summary) if record and record["finished"] and summary else None
+
+
+def _exploratory(results: Path, seed: int) -> list[str]:
+    """The paragraph on the exploratory run (``act_tar`` with TAR never on), once it and the pair are finished."""
+    runs = {run: _finished(results / f"{run}-seed{seed}") for run in RUNS}
+    if any(value is None for value in runs.values()):
+        return []
+    success = {run: 100 * _overall(summary)["success"] for run, (_, summary) in runs.items()}
+    logs = {run: pd.read_csv(results / f"{run}-seed{seed}" / LOG_FILE) for run in ("act_tar", EXPLORATORY)}
+    same, compared = same_before(logs["act_tar"], logs[EXPLORATORY], TAR_START)
+    agree = "agree" if same else "do NOT agree"
+    return [
+        "",
+        f"Exploratory (PLAN.md, registered after the pair): `{EXPLORATORY}` is `act_tar` with TAR never on "
+        f"(`--policy.tar.start={R4_STEPS}`), the uniform mean over the same segments of 16 steps. Its step lines and "
+        f"`act_tar`'s {agree} in every value but the timings before TAR's start at step {TAR_START} ({compared} "
+        f"lines compared). `act_tar` - `{EXPLORATORY}` (TAR on the same segments): "
+        f"{success['act_tar'] - success[EXPLORATORY]:+.1f} points; `{EXPLORATORY}` - `act` (segments of 16 "
+        "consecutive frames against 1,024 independent ones, uniform both): "
+        f"{success[EXPLORATORY] - success['act']:+.1f} points. One seed: no conclusion.",
+    ]
+
+
 def pilot_report(results: Path, seed: int = 0) -> str:
-    """The pair's table (``report.md``) from the results ``record`` wrote under ``results``."""
-    rows, groups, seconds, missing = [], [], 0.0, []
-    for arm in ARMS:
-        folder = results / f"{arm}-seed{seed}"
-        record, summary = _read(folder / TRAINING_FILE), _read(folder / SUMMARY_FILE)
-        if record is None or not record["finished"] or summary is None:
-            missing.append(arm)
-        final = summary["final"] if summary else []
-        overall = next((g for g in final if g["name"] == "overall"), None)
-        training = resumed = rates = evaluation = "-"
-        if record:
-            training = f"{record['train_seconds'] / 3600:.2f} h"
-            resumed = ", ".join(map(str, record["resumed_at"])) or "-"
-            rates = ", ".join(f"{s['seconds_per_step']:.2f}" for s in record["segments"] if s["seconds_per_step"])
-        if summary:
-            evaluation = f"{summary['final_eval_seconds'] / 60:.1f} min"
-        rows.append(
-            f"| {folder.name} | {training} | {resumed} | {rates or '-'} | {evaluation} | "
-            f"{_percent(overall, 'success')} | {_percent(overall, 'fast20')} | {_percent(overall, 'neps')} |"
-        )
-        groups += [
-            f"| {folder.name} | {g['name']} | {g['n_tasks']} | {g['n_rollouts']} | {_percent(g, 'success')} | "
-            f"{_percent(g, 'fast20')} | {_percent(g, 'neps')} |"
-            for g in final
-            if g["name"] != "overall"
-        ]
-        seconds += (record["train_seconds"] if record else 0.0) + (summary["final_eval_seconds"] if summary else 0.0)
+    """The pair's table (``report.md``) from the results ``record`` wrote under ``results``: the pair's two runs,
+    then the exploratory run where it is recorded."""
+    rows, groups, seconds = [], [], 0.0
+    for run in RUNS:
+        folder = results / f"{run}-seed{seed}"
+        if run not in ARMS and not folder.is_dir():
+            continue
+        row, by_group = _rows(folder, folder.name if run in ARMS else f"{folder.name} (exploratory)")
+        rows.append(row)
+        groups += by_group
+    finished = {arm: _finished(results / f"{arm}-seed{seed}") for arm in ARMS}
+    missing = [arm for arm, done in finished.items() if done is None]
     if missing:
         cost = f"Not finished: {', '.join(missing)} (trained to step {R4_STEPS} and evaluated); no cost yet."
     else:
+        seconds = sum(record["train_seconds"] + summary["final_eval_seconds"] for record, summary in finished.values())
         cost = (
             f"The pair took {seconds / 3600:.1f} hours here (training and evaluation, one run at a time); a "
             f"pre-registered study of 8 pairs at these times takes {8 * seconds / 3600:.0f} hours. One pair supports "
@@ -228,6 +286,7 @@ def pilot_report(results: Path, seed: int = 0) -> str:
         *rows,
         "",
         cost,
+        *_exploratory(results, seed),
         "",
         "Training: from each segment's start of training to its last checkpoint, summed (the work kept; a segment "
         "stopped by a session's end loses its steps after its last checkpoint, and the next segment resumes from "

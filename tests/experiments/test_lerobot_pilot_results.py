@@ -169,3 +169,43 @@ def test_the_command_line_refuses_a_folder_without_runs_in_one_line(tmp_path, ca
     assert err == f"lerobot_pilot_results record: {tmp_path} holds no runs folder (the plan's --root)"
     assert not (tmp_path / "out").exists()
     assert results.main(["report", "--results", str(tmp_path / "none")]) == 1
+
+
+def _log_lines(*losses: float, first: int = 100) -> pd.DataFrame:
+    return pd.DataFrame(
+        {"time": [f"10:0{i}" for i in range(len(losses))], "step": [first + 100 * i for i in range(len(losses))],
+         "loss": list(losses), "updt_s": [0.5 + i for i in range(len(losses))], "tar_mix": [0.0] * len(losses)}
+    )  # fmt: skip
+
+
+def test_two_runs_agree_before_a_step_in_every_value_but_the_timings():
+    tar, uniform = _log_lines(9.0, 4.0, 2.0, 1.5), _log_lines(9.0, 4.0, 2.0, 1.0)
+    uniform["time"], uniform["updt_s"] = "11:00", 0.25  # timings differ between equal runs
+    assert results.same_before(tar, uniform, 400) == (True, 3)  # steps 100-300; step 400 differs, not compared
+    assert results.same_before(tar, uniform, 401) == (False, 4)
+    uniform.loc[0, "tar_mix"] = 0.5
+    assert results.same_before(tar, uniform, 400) == (False, 3)
+    assert results.same_before(tar, uniform.iloc[:0], 400) == (False, 0)
+
+
+def test_the_report_sets_the_exploratory_run_beside_the_pair(tmp_path):
+    start = results.TAR_START  # 749: the step lines 100-700 are compared
+    before = [1.0 + i for i in range(start // 100)]
+    for run, success, last_loss in (("act", 0.714, 0.5), ("act_tar", 0.653, 0.4), ("act_tar_uniform", 0.70, 0.3)):
+        folder = tmp_path / f"{run}-seed0"
+        folder.mkdir()
+        record, _ = results.training_record(run, LOG, 2, steps=8)
+        (folder / "training.json").write_text(json.dumps(record))
+        final = [{**_group("overall", success, 0.25, 0.5), "level": "overall"}]
+        (folder / "summary.json").write_text(json.dumps({"final": final, "final_eval_seconds": 3600.0}))
+        _log_lines(*before, last_loss).to_csv(folder / "train_log.csv", index=False)
+    text = results.pilot_report(tmp_path)
+    assert "| act_tar_uniform-seed0 (exploratory) | 0.02 h | 4 | 10.50, 5.25 | 60.0 min | 70.0 | 25.0 | 50.0 |" in text
+    assert "agree in every value but the timings before TAR's start at step 749 (7 lines compared)" in text
+    # 65.3 - 70.0 = -4.7 (TAR on the same segments); 70.0 - 71.4 = -1.4 (segments against independent frames)
+    assert "(TAR on the same segments): -4.7 points" in text and "uniform both): -1.4 points" in text
+    # the pair's cost leaves the exploratory run out: (63 + 3600) x 2 = 7,326 s a pair (2.0 h), x 8 = 16.3 h
+    assert "The pair took 2.0 hours here" in text and "8 pairs at these times takes 16 hours" in text
+    uniform = tmp_path / "act_tar_uniform-seed0" / "train_log.csv"
+    _log_lines(*before[:-1], 99.0, 0.3).to_csv(uniform, index=False)  # step 700 differs
+    assert "do NOT agree" in results.pilot_report(tmp_path)
