@@ -256,8 +256,8 @@ R4_STEPS = 3743  # 20 passes: 20 x 191,624 demonstration steps / (64 x 16)
 R4_SEGMENTS, R4_SLICE = 64, 16
 R4_PAIRS = R4_SEGMENTS * R4_SLICE  # (observation, chunk) pairs per step
 TAR_START, TAR_RAMP = round(0.2 * R4_STEPS), round(0.3 * R4_STEPS)  # tar-rl's objective.start, .ramp fractions
-#: Steps between checkpoints: a run takes longer than a working session here (3 to 6.4 s a step), so it is saved
-#: every 15 to 27 minutes and resumed from its last checkpoint (:func:`resume_commands`).
+#: Steps between checkpoints: a run (0.4 to 1.1 hours here) may be stopped by the end of a working session, so it is
+#: saved every 2 to 10 minutes and resumed from its last checkpoint (:func:`resume_commands`).
 SAVE_EVERY = 250
 #: The pair's two runs, in the order they train.
 ARMS = ("act", "act_tar")
@@ -321,18 +321,18 @@ def resume_commands(seed: int = 0, root: str = "pilot") -> list[str]:
 
 
 COST = f"""\
-Cost on this machine (2 CPU cores): one pair's training, measured from 15 timed steps of each run at this size
-(3 to 6.4 s a step), is 7.5 to 10.5 hours; each evaluation (MT50, 20 rollouts per task, at most 500 steps each)
-takes at most about 35 minutes on two workers (8 ms per environment step measured through the server), recorded
-as final_eval_seconds in its summary.json. A pre-registered study of 8 pairs (seeds 0-7) is 8 times that: 60 to 84
-hours of training and at most about 9 hours of evaluation on this machine, one run at a time. One pair reports two
-success rates; it supports no conclusion about TAR.
+Cost, measured by the pair on this machine (2 CPU cores, one run at a time; benchmarks/results/lerobot_pilot/
+report.md): `act` trained in 1.10 hours (2.37 s a step in its first segment, 0.97 after it resumed), `act_tar` in
+0.44 hours (0.43 s a step; from step 300 its logged waits for data average 0.02 s a step against `act`'s 0.38, its
+updates 0.40 s against 0.58); each evaluation (MT50, 20 rollouts per task) took 2.5 to 2.7 minutes on two
+workers. The pair took 1.6 hours; a pre-registered study of 8 pairs (seeds 0-7) at these times takes about 13 hours.
+One pair reports two success rates; it supports no conclusion about TAR.
 
-A run (3 to 7 hours) outlasts a working session here: it saves a checkpoint every {SAVE_EVERY} steps, and a run
-that stopped continues from its last one with the lines above. LeRobot's resume continues the run's data order,
-but its random draws afterwards differ from an uninterrupted run's (6-step runs resumed at step 4 gave step-5 losses
-of 28.47 for `act` and 29.84 for `act_tar`, against 29.10 and 29.65 uninterrupted), so a resumed run is not
-bit-identical to one that ran through: the pair records where each run resumed (its checkpoints' steps)."""
+A run can outlast a working session here: it saves a checkpoint every {SAVE_EVERY} steps, and a run that stopped
+continues from its last one with the lines above. LeRobot's resume continues the run's data order, but its random
+draws afterwards differ from an uninterrupted run's (6-step runs resumed at step 4 gave step-5 losses of 28.47 for
+`act` and 29.84 for `act_tar`, against 29.10 and 29.65 uninterrupted), so a resumed run is not bit-identical to one
+that ran through: the pair records where each run resumed (its checkpoints' steps)."""
 
 
 def _plan(args) -> int:
