@@ -41,7 +41,7 @@ from benchmarks.relative_paths import rewrite
 from tar_rl.io import atomic_write, write_csv_atomic, write_json_atomic
 from tar_rl.runs import ROLLOUTS_FILE, SUMMARY_FILE
 
-__all__ = ["main", "pilot_report", "record_pilot", "training_record", "training_segments"]
+__all__ = ["main", "pilot_report", "record_pilot", "same_before", "training_record", "training_segments"]
 
 #: A line of ``lerobot-train``'s log: its time and message (the progress bar shares lines with it, split by ``\r``).
 LOG_LINE = re.compile(r"INFO (\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) \S+ (.*)$")
