@@ -171,7 +171,10 @@ def record_pilot(root: Path, out: Path, seed: int = 0) -> list[str]:
         config = root / "runs" / name / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
         if config.is_file() and log.is_file():
             text = config.read_text()
-            record, lines = training_record(run, log.read_text(errors="replace"), json.loads(text)["log_freq"])
+            settings = json.loads(text)
+            record, lines = training_record(
+                run, log.read_text(errors="replace"), settings["log_freq"], steps=settings["steps"]
+            )
             _write_text(target / "train_config.json", portable_text(text, root))
             write_json_atomic(record, target / TRAINING_FILE)
             write_csv_atomic(lines, target / LOG_FILE)

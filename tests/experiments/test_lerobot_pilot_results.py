@@ -92,7 +92,9 @@ def _pilot(tmp_path, arm="act", summary=None):
     config = root / "runs" / f"{arm}-seed0" / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
     config.parent.mkdir(parents=True)
     config.write_text(
-        json.dumps({"dataset": {"root": f"{root}/lerobot/mt50"}, "output_dir": f"{root}/runs/x", "log_freq": 2})
+        json.dumps(
+            {"dataset": {"root": f"{root}/lerobot/mt50"}, "output_dir": f"{root}/runs/x", "log_freq": 2, "steps": 3743}
+        )
     )
     (root / f"{arm}.log").write_text(LOG)
     if summary is not None:
@@ -112,6 +114,7 @@ def test_record_writes_a_trained_and_evaluated_run_with_paths_relative_to_the_re
         "dataset": {"root": "pilot/lerobot/mt50"},
         "output_dir": "pilot/runs/x",
         "log_freq": 2,
+        "steps": 3743,
     }
     assert json.loads((out / "summary.json").read_text())["checkpoint"] == "pilot/runs/x/last"
     assert gzip.decompress((out / "eval_rollouts.csv.gz").read_bytes()) == b"task,rollout,success\nreach-v3,0,1\n"
@@ -125,7 +128,7 @@ def test_record_writes_a_trained_and_evaluated_run_with_paths_relative_to_the_re
 def test_record_refuses_a_path_it_cannot_write_relative_to_the_repository(tmp_path):
     root = _pilot(tmp_path)
     config = next(root.glob("runs/*/checkpoints/last/pretrained_model/train_config.json"))
-    config.write_text(json.dumps({"cache": "/nowhere-known/hub", "log_freq": 2}))
+    config.write_text(json.dumps({"cache": "/nowhere-known/hub", "log_freq": 2, "steps": 3743}))
     with pytest.raises(ValueError, match="cannot write /nowhere-known/hub relative to the repository"):
         results.record_pilot(root, tmp_path / "out")
 
